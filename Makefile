@@ -1,0 +1,41 @@
+# The two commands of the README: `make demo` and `make test`. Each sets up everything it needs on a fresh machine:
+# the Debian libraries Open3D loads, a virtual environment in .venv, the package and the example plugin.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+# Debian packages whose shared libraries the open3d wheel links against (libusb: the RealSense bits; libgl/libgomp:
+# rendering and OpenMP).
+DEB_LIBS := libusb-1.0-0 libgl1 libgomp1
+
+.PHONY: demo test setup system-deps lint bench clean
+
+demo: setup
+	$(BIN)/gdt scene test-scene workflows/data/test_scene --seed 0
+	$(BIN)/gdt run workflows/demo.yaml --overwrite
+
+test: setup
+	$(BIN)/python -m pytest -q -p no:cacheprovider
+
+lint: setup
+	$(BIN)/ruff check .
+
+setup: system-deps $(STAMP)
+
+# Install only what is missing; apt-get needs root (the CI and developer machines run as root).
+system-deps:
+	@missing=""; for p in $(DEB_LIBS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO="sudo"; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml plugins/gdt-c2c/pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e ".[dev]" -e plugins/gdt-c2c
+	@touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) out workflows/data .pytest_cache

@@ -1,0 +1,56 @@
+"""gdt-pipeline: geometric digital twins of long-living assets from CAD and 3D scans, with uncertainty-aware change
+detection. This module is the public API a plugin builds on: the hook marker, the stage record and the data types."""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from .errors import GdtError, InputError, PluginError, StageError, WorkflowError
+from .plugins import ReadRequest, StageContext, StageSpec, hookimpl, hookspec
+from .types import (
+    BoxUncertainty,
+    Change,
+    ChangeState,
+    Composite,
+    CompositeItem,
+    Correspondences,
+    Dataset,
+    EpochInfo,
+    GaussianUncertainty,
+    RegionOfView,
+    Registration,
+    Scores,
+    SourceInfo,
+    Uncertainty,
+)
+
+try:
+    __version__ = version("gdt-pipeline")
+except PackageNotFoundError:  # running from a source tree that was not installed
+    __version__ = "0.0.0+unknown"
+
+__all__ = [
+    "BoxUncertainty",
+    "Change",
+    "ChangeState",
+    "Composite",
+    "CompositeItem",
+    "Correspondences",
+    "Dataset",
+    "EpochInfo",
+    "GaussianUncertainty",
+    "GdtError",
+    "InputError",
+    "PluginError",
+    "ReadRequest",
+    "RegionOfView",
+    "Registration",
+    "Scores",
+    "SourceInfo",
+    "StageContext",
+    "StageError",
+    "StageSpec",
+    "Uncertainty",
+    "WorkflowError",
+    "__version__",
+    "hookimpl",
+    "hookspec",
+]

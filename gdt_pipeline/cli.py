@@ -1,0 +1,257 @@
+"""The ``gdt`` command line: run, validate, plugins, schema, scene.
+
+Errors end with a one-paragraph message and a non-zero exit code (1: the input or workflow is wrong; 70: a bug in
+gdt or a plugin); ``--debug`` adds the traceback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import sys
+import traceback
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import click
+from rich.console import Console
+from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+from rich.table import Table
+from rich.text import Text
+
+from . import __version__
+from .errors import GdtError, WorkflowError
+
+err_console = Console(stderr=True)
+out_console = Console()
+EXIT_ERROR = 1
+EXIT_INTERNAL = 70
+
+
+class JsonLinesHandler(logging.Handler):
+    """Structured log: one JSON object per record, with the ``event`` fields the runner attaches."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__()
+        self._fh = open(path, "a", encoding="utf-8")  # noqa: SIM115  (closed in close())
+
+    def emit(self, record: logging.LogRecord) -> None:
+        """Write one record."""
+        data: dict[str, Any] = {"time": record.created, "level": record.levelname, "logger": record.name,
+                                "message": record.getMessage()}
+        data.update(getattr(record, "event", {}) or {})
+        self._fh.write(json.dumps(data, default=str) + "\n")
+        self._fh.flush()
+
+    def close(self) -> None:
+        """Close the file."""
+        self._fh.close()
+        super().close()
+
+
+def _setup_logging(verbose: int, log_file: Path | None) -> None:
+    from rich.logging import RichHandler
+
+    root = logging.getLogger("gdt")
+    root.handlers.clear()
+    root.setLevel(logging.DEBUG)
+    console = RichHandler(console=err_console, show_path=False, show_time=False)
+    console.setLevel(logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG)
+    root.addHandler(console)
+    if log_file is not None:
+        handler = JsonLinesHandler(log_file)
+        handler.setLevel(logging.DEBUG)
+        root.addHandler(handler)
+    root.propagate = False
+
+
+class _RichProgress:
+    """Progress tasks of stages shown as rich progress bars."""
+
+    def __init__(self, progress: Progress) -> None:
+        self._p = progress
+
+    @contextlib.contextmanager
+    def task(self, description: str, total: float) -> Iterator[Any]:
+        """A bar for the duration of the block."""
+        tid = self._p.add_task(description, total=total)
+        try:
+            yield lambda advance=1.0: self._p.advance(tid, advance)
+        finally:
+            self._p.remove_task(tid)
+
+
+def _reporter(progress: Progress | None) -> Any:
+    from .runner import Reporter
+
+    class RichReporter(Reporter):
+        def __init__(self) -> None:
+            if progress is not None:
+                self.progress = _RichProgress(progress)
+
+        def epoch_started(self, epoch: Any, index: int, total: int) -> None:
+            err_console.print(f"[bold]epoch {epoch.id}[/] ({index + 1}/{total}, {epoch.role}, "
+                              f"{len(epoch.inputs)} input{'s' if len(epoch.inputs) != 1 else ''})")
+
+        def stage_finished(self, epoch: Any, index: int, spec: Any, seconds: float) -> None:
+            err_console.print(f"  {spec.family:<14} {spec.name:<18} {seconds:7.2f} s")
+
+        def epoch_finished(self, summary: Any) -> None:
+            c = summary.counts
+            err_console.print(f"  -> {summary.layer.name}: {c['unchanged']} unchanged, {c['new']} new, "
+                              f"{c['removed']} removed, {c['outside_rov']} outside view ({summary.seconds:.1f} s)")
+
+    return RichReporter()
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="gdt")
+@click.option("--debug", is_flag=True, help="Show tracebacks on errors.")
+@click.pass_context
+def cli(ctx: click.Context, debug: bool) -> None:
+    """gdt: build geometric digital twins from CAD and scans, epoch by epoch, with uncertainty-aware change
+    detection. Each epoch is one USD layer of the twin, with per-element uncertainty, change and provenance."""
+    ctx.ensure_object(dict)
+    ctx.obj["debug"] = debug
+
+
+def _registry() -> Any:
+    from .plugins import load_registry
+
+    reg = load_registry()
+    for w in reg.warnings:
+        err_console.print(Text.assemble(("warning: ", "yellow"), w))
+    return reg
+
+
+@cli.command()
+@click.argument("workflow", type=click.Path(path_type=Path))
+@click.option("--twin", type=click.Path(path_type=Path), help="Write the twin here instead of the workflow's `twin:`.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing twin (only once the new one is complete).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress output.")
+@click.option("-v", "--verbose", count=True, help="More log output (-v info, -vv debug).")
+@click.option("--log-file", type=click.Path(path_type=Path), help="Append a structured JSON-lines log here.")
+def run(workflow: Path, twin: Path | None, overwrite: bool, quiet: bool, verbose: int, log_file: Path | None) -> None:
+    """Run WORKFLOW end to end and write its twin."""
+    from .runner import run_workflow
+
+    _setup_logging(verbose, log_file)
+    registry = _registry()
+    if quiet:
+        result = run_workflow(workflow, registry=registry, twin=twin, overwrite=overwrite)
+    else:
+        with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
+                      console=err_console, transient=True) as progress:
+            result = run_workflow(workflow, registry=registry, twin=twin, overwrite=overwrite,
+                                  reporter=_reporter(progress))
+    out_console.print(f"twin written to {result.twin}", highlight=False, soft_wrap=True)
+    out_console.print(f"root layer: {result.twin / 'twin.usda'}   lock: {result.lock}", highlight=False,
+                      soft_wrap=True)
+
+
+@cli.command()
+@click.argument("workflows", nargs=-1, required=True, type=click.Path(path_type=Path))
+def validate(workflows: tuple[Path, ...]) -> None:
+    """Check WORKFLOWS without running them: schema, stage names, parameters, slots, input files."""
+    from .workflow import load_workflow
+
+    registry = _registry()
+    failed = 0
+    for wf_path in workflows:
+        try:
+            wf = load_workflow(wf_path, registry)
+        except WorkflowError as exc:
+            failed += 1
+            for line in exc.problems:
+                click.echo(line)
+            continue
+        m = wf.model
+        click.echo(f"{wf.path}: ok ({len(m.epochs)} epochs, {len(m.stages)} stages, twin {wf.twin_path()})")
+    if failed:
+        raise SystemExit(EXIT_ERROR)
+
+
+@cli.command()
+@click.option("--family", help="Only this family (reader, registrar, uncertainty, ...).")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+def plugins(family: str | None, as_json: bool) -> None:
+    """List the installed stages: family, name, plugin, version."""
+    registry = _registry()
+    rows = registry.stages(family)
+    if as_json:
+        click.echo(json.dumps([{"family": s.family, "name": s.name, "plugin": s.plugin,
+                                "plugin_version": s.plugin_version, "version": s.version, "entry_point": s.entry_point,
+                                "requires": list(s.requires), "provides": list(s.provides),
+                                "description": s.description} for s in rows], indent=2))
+        return
+    table = Table(title=f"gdt stages ({len(rows)})")
+    for col in ("family", "name", "plugin", "version", "requires -> provides"):
+        table.add_column(col)
+    for s in rows:
+        table.add_row(s.family, s.name, f"{s.plugin} {s.plugin_version} ({s.entry_point})", s.version,
+                      f"{', '.join(s.requires)} -> {', '.join(s.provides)}")
+    Console(width=max(120, out_console.width)).print(table)
+
+
+@cli.command()
+@click.option("-o", "--output", type=click.Path(path_type=Path), help="Write to this file instead of stdout.")
+def schema(output: Path | None) -> None:
+    """Print the JSON Schema of workflow files (for `# yaml-language-server: $schema=...`)."""
+    from .workflow import json_schema
+
+    text = json.dumps(json_schema(_registry()), indent=2)
+    if output:
+        output.write_text(text + "\n", encoding="utf-8")
+        err_console.print(f"schema written to {output}")
+    else:
+        click.echo(text)
+
+
+@cli.command()
+@click.argument("name", type=click.Choice(["test-scene"]))
+@click.argument("out_dir", type=click.Path(path_type=Path))
+@click.option("--seed", default=0, show_default=True, help="Seed of the simulated scan.")
+def scene(name: str, out_dir: Path, seed: int) -> None:
+    """Generate a synthetic scene (CAD, simulated scans, ground truth) into OUT_DIR."""
+    from .scenes import make_test_scene
+
+    files = make_test_scene(out_dir, seed=seed)
+    click.echo(f"scene {name!r} written to {files.root}")
+
+
+def main() -> None:
+    """Entry point of the ``gdt`` command."""
+    debug = "--debug" in sys.argv[1:]
+    try:
+        cli.main(standalone_mode=False)
+    except click.exceptions.Exit as exc:
+        raise SystemExit(exc.exit_code) from None
+    except click.ClickException as exc:
+        exc.show()
+        raise SystemExit(exc.exit_code) from None
+    except click.exceptions.Abort:
+        err_console.print("aborted")
+        raise SystemExit(130) from None
+    except KeyboardInterrupt:
+        err_console.print("interrupted; nothing was written to the twin")
+        raise SystemExit(130) from None
+    except GdtError as exc:
+        if debug:
+            traceback.print_exc()
+        err_console.print(Text.assemble(("error: ", "bold red"), str(exc)), soft_wrap=True)
+        raise SystemExit(EXIT_ERROR) from None
+    except SystemExit:
+        raise
+    except Exception as exc:
+        if debug:
+            traceback.print_exc()
+        err_console.print(Text.assemble(("internal error: ", "bold red"), f"{type(exc).__name__}: {exc}\n"
+                                        "This is a bug in gdt or in a plugin; rerun with --debug for the traceback "
+                                        "and report it."), soft_wrap=True)
+        raise SystemExit(EXIT_INTERNAL) from None
+
+
+if __name__ == "__main__":
+    main()

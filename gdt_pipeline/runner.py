@@ -1,0 +1,347 @@
+"""The runner: reads each epoch's inputs, runs the chain over a shared context, and writes the composite to the twin.
+
+Reproducibility: every stage gets a numpy Generator from ``SeedSequence(workflow seed, spawn_key=(epoch, stage))``,
+so the same workflow and inputs give the same twin whatever else runs. Traceability: every stage gets a cache key,
+the sha256 of its plugin, name and version, validated params, the epoch's input digests and the keys upstream of it;
+the keys and everything else needed to re-run an epoch go into the epoch's provenance and into ``gdt.lock``.
+
+Safety: the twin is built in a temporary folder beside the target and moved into place only when every epoch has
+been written, so a failure or an interrupt leaves an existing twin exactly as it was and no half-written one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import platform
+import shutil
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twin_store import TwinStore
+
+from .errors import GdtError, InputError, StageError
+from .plugins import NullProgress, Progress, ReadRequest, Registry, StageContext, StageSpec, load_registry
+from .twin import composite_to_elements
+from .types import (
+    Change,
+    Composite,
+    Correspondences,
+    Dataset,
+    EpochInfo,
+    Registration,
+    Scores,
+    SourceInfo,
+)
+from .workflow import UNITS, EpochSpec, LoadedWorkflow, iter_chain, load_workflow, resolved_params
+
+log = logging.getLogger("gdt.run")
+
+LOCK_NAME = "gdt.lock"
+PACKAGES = ("gdt-pipeline", "numpy", "scipy", "open3d-cpu", "open3d", "usd-core", "trimesh", "pydantic", "pluggy",
+            "pymeshlab", "laspy")
+
+# Types of the slots the engine knows; slots a third party invents are passed through unchecked.
+SLOT_TYPES: dict[str, Callable[[Any], bool]] = {
+    "recent": lambda v: isinstance(v, list | tuple) and all(isinstance(d, Dataset) for d in v),
+    "registration": lambda v: isinstance(v, Registration),
+    "correspondences": lambda v: isinstance(v, list | tuple) and all(isinstance(c, Correspondences) for c in v),
+    "scores": lambda v: isinstance(v, list | tuple) and all(isinstance(c, Scores) for c in v),
+    "change": lambda v: isinstance(v, list | tuple) and all(isinstance(c, Change) for c in v),
+    "composite": lambda v: isinstance(v, Composite),
+    "dataset": lambda v: isinstance(v, Dataset),
+}
+
+
+def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    """sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _canonical(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
+
+
+def cache_key(spec: StageSpec, params: Mapping[str, Any], input_digests: list[str], upstream: list[str]) -> str:
+    """sha256 of plugin, stage name and version, validated params, input digests and upstream keys."""
+    payload = {"plugin": spec.plugin, "plugin_version": spec.plugin_version, "stage": spec.name,
+               "version": spec.version, "params": params, "inputs": input_digests, "upstream": upstream}
+    return hashlib.sha256(_canonical(payload).encode()).hexdigest()
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of the packages that shape results."""
+    out = {}
+    for name in PACKAGES:
+        with contextlib.suppress(PackageNotFoundError):
+            out[name] = version(name)
+    return out
+
+
+@dataclass
+class EpochSummary:
+    """What one epoch produced, for the CLI and for tests."""
+
+    id: str
+    counts: dict[str, int]
+    seconds: float
+    layer: Path
+
+
+@dataclass
+class RunResult:
+    """Where the run wrote its twin, and a summary per epoch."""
+
+    twin: Path
+    lock: Path
+    epochs: list[EpochSummary] = field(default_factory=list)
+
+
+class Reporter:
+    """Hooks the CLI uses to show progress; the default shows nothing."""
+
+    progress: Progress = NullProgress()
+
+    def epoch_started(self, epoch: EpochSpec, index: int, total: int) -> None:
+        """An epoch begins."""
+
+    def stage_started(self, epoch: EpochSpec, index: int, spec: StageSpec) -> None:
+        """A stage begins."""
+
+    def stage_finished(self, epoch: EpochSpec, index: int, spec: StageSpec, seconds: float) -> None:
+        """A stage ended."""
+
+    def epoch_finished(self, summary: EpochSummary) -> None:
+        """An epoch was written."""
+
+
+def _rel(path: Path, base: Path) -> str:
+    """A path relative to the workflow folder when below it (host-independent provenance), else absolute."""
+    try:
+        return path.resolve().relative_to(base.resolve()).as_posix()
+    except ValueError:
+        return str(path.resolve())
+
+
+def _check_dataset(ds: Dataset, where: str) -> None:
+    if ds.n_elements == 0 or len(ds.points) == 0:
+        raise InputError(f"{where}: the {'mesh has no faces' if ds.faces is not None else 'point cloud is empty'}")
+    bad = ~np.isfinite(ds.points).all(axis=1)
+    if bad.any():
+        first = np.flatnonzero(bad)[:5].tolist()
+        raise InputError(f"{where}: {int(bad.sum())} of {len(ds.points)} coordinates are NaN or infinite "
+                         f"(first rows {first}); clean the file or remove those points")
+
+
+def _read_input(wf: LoadedWorkflow, registry: Registry, epoch: EpochSpec, i_index: int, digest: str) -> Dataset:
+    inp = epoch.inputs[i_index]
+    path = wf.input_path(inp)
+    where = f"epoch {epoch.id}, input {i_index} ({path})"
+    name = inp.name or _identifier(path.stem)
+    if inp.reader:
+        spec = registry.get(inp.reader, family="reader")
+    else:
+        cands = registry.readers_for(path, inp.kind)
+        if not cands:
+            raise InputError(f"{where}: no installed reader accepts this file")
+        spec = cands[0]
+    ctx = StageContext(stage=spec, params=spec.params(), epoch=EpochInfo(epoch.id, -1, epoch.role, 0, wf.dir),
+                       slots={"request": ReadRequest(path, name, epoch.role, inp.kind, digest)},
+                       rng=np.random.default_rng(0), seed=0, log=logging.getLogger(f"gdt.stage.{spec.name}"))
+    try:
+        ds = spec.run(ctx)["dataset"]
+    except GdtError as exc:
+        raise InputError(f"{where}: {exc}") from exc
+    except Exception as exc:
+        raise InputError(f"{where}: reader {spec.name!r} failed: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(ds, Dataset):
+        raise StageError(f"{where}: reader {spec.name!r} returned {type(ds).__name__}, not a Dataset")
+    _check_dataset(ds, where)
+    units = inp.units or wf.model.units
+    scale = UNITS[units] / UNITS[wf.model.units]
+    vps = None if inp.viewpoints is None else np.asarray(inp.viewpoints, dtype=np.float64) * scale
+    return dataclasses.replace(
+        ds, name=name, role=epoch.role, points=ds.points * scale if scale != 1.0 else ds.points, viewpoints=vps,
+        source=SourceInfo(path=_rel(path, wf.dir), sha256=digest, units=units, scale=scale, reader=spec.name))
+
+
+def _identifier(stem: str) -> str:
+    out = "".join(ch if ch.isalnum() or ch == "_" else "_" for ch in stem)
+    return out if out and not out[0].isdigit() else f"_{out}"
+
+
+def _run_stage(spec: StageSpec, ctx: StageContext, where: str) -> dict[str, Any]:
+    try:
+        out = spec.run(ctx)
+    except GdtError as exc:
+        raise type(exc)(f"{where}: {exc}") from exc
+    except (KeyboardInterrupt, MemoryError):
+        raise
+    except Exception as exc:
+        raise StageError(f"{where} failed: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(out, Mapping):
+        raise StageError(f"{where} returned {type(out).__name__}, not a mapping of slots")
+    got, want = set(out), set(spec.provides)
+    if got != want:
+        raise StageError(f"{where} broke its contract: it declares {sorted(want)} but returned {sorted(got)}")
+    for slot, value in out.items():
+        check = SLOT_TYPES.get(slot)
+        if check is not None and not check(value):
+            raise StageError(f"{where} returned a {type(value).__name__} for slot {slot!r}")
+    return dict(out)
+
+
+def _stage_rng(seed: int, epoch_index: int, stage_index: int) -> tuple[np.random.Generator, int]:
+    ss = np.random.SeedSequence(seed, spawn_key=(epoch_index, stage_index))
+    return np.random.default_rng(ss), int(ss.generate_state(1, dtype=np.uint32)[0])
+
+
+def run_workflow(path: str | Path, *, registry: Registry | None = None, twin: str | Path | None = None,
+                 overwrite: bool = False, reporter: Reporter | None = None) -> RunResult:
+    """Run a workflow file end to end and write its twin; return where it went."""
+    registry = registry or load_registry()
+    reporter = reporter or Reporter()
+    wf = load_workflow(path, registry)
+    model = wf.model
+    target = Path(twin).resolve() if twin is not None else wf.twin_path()
+    if target.exists() and not overwrite:
+        raise GdtError(f"twin {target} already exists; pass --overwrite to replace it (the old twin stays intact "
+                       f"until the new one is complete)")
+    if target.exists() and not (target / "twin.usda").is_file():
+        raise GdtError(f"{target} exists and is not a twin (no twin.usda); refusing to replace it")
+
+    digests: dict[tuple[int, int], str] = {}
+    for e_index, epoch in enumerate(model.epochs):
+        for i_index, inp in enumerate(epoch.inputs):
+            p = wf.input_path(inp)
+            try:
+                digests[(e_index, i_index)] = sha256_file(p)
+            except OSError as exc:
+                raise InputError(f"epoch {epoch.id}, input {i_index} ({p}): cannot read: {exc.strerror}") from exc
+
+    target.parent.mkdir(parents=True, exist_ok=True)
+    staging = target.parent / f".{target.name}.partial-{os.getpid()}"
+    if staging.exists():
+        shutil.rmtree(staging)
+    packages = package_versions()
+    lock: dict[str, Any] = {"format": 1, "workflow": {"path": wf.path.name, "sha256": wf.sha256, "name": model.name},
+                            "seed": model.seed, "packages": packages, "epochs": []}
+    result = RunResult(twin=target, lock=target / LOCK_NAME)
+    try:
+        store = TwinStore.create(staging, meters_per_unit=UNITS[model.units], up_axis=model.up_axis)
+        composite: Composite | None = None
+        upstream_epoch_key: str | None = None
+        for e_index, epoch in enumerate(model.epochs):
+            t_epoch = time.perf_counter()
+            started = datetime.now(UTC).isoformat(timespec="seconds")
+            reporter.epoch_started(epoch, e_index, len(model.epochs))
+            info = EpochInfo(id=epoch.id, index=e_index, role=epoch.role, seed=model.seed, workflow_dir=wf.dir)
+            input_digests = [digests[(e_index, i)] for i in range(len(epoch.inputs))]
+            recent = [_read_input(wf, registry, epoch, i, digests[(e_index, i)]) for i in range(len(epoch.inputs))]
+            slots: dict[str, Any] = {"recent": recent, "epoch": info}
+            if composite is not None:
+                slots["reference"] = composite
+            upstream = [upstream_epoch_key] if upstream_epoch_key else []
+            stage_records = []
+            for s_index, entry in iter_chain(wf, epoch):
+                spec = registry.get(entry.uses)
+                params = resolved_params(entry)
+                rng, seed = _stage_rng(model.seed, e_index, s_index)
+                key = cache_key(spec, params, input_digests, upstream)
+                where = f"epoch {epoch.id}, stage {s_index} {spec.name!r} ({spec.plugin} {spec.plugin_version})"
+                visible = {k: v for k, v in slots.items() if k in spec.requires or k in spec.optional or k == "epoch"}
+                ctx = StageContext(stage=spec, params=entry.with_, slots=visible, epoch=info, rng=rng, seed=seed,
+                                   log=logging.getLogger(f"gdt.stage.{spec.name}"), progress=reporter.progress)
+                reporter.stage_started(epoch, s_index, spec)
+                t0 = time.perf_counter()
+                slots.update(_run_stage(spec, ctx, where))
+                dt = time.perf_counter() - t0
+                reporter.stage_finished(epoch, s_index, spec, dt)
+                log.info("stage done", extra={"event": {"epoch": epoch.id, "stage": spec.name, "index": s_index,
+                                                        "seconds": round(dt, 4), "cache_key": key}})
+                upstream.append(key)
+                stage_records.append({"index": s_index, "id": entry.id, "uses": spec.name, "family": spec.family,
+                                      "version": spec.version, "plugin": spec.plugin,
+                                      "plugin_version": spec.plugin_version, "entry_point": spec.entry_point,
+                                      "params": params, "seed_spawn_key": [e_index, s_index], "seed": seed,
+                                      "requires": list(spec.requires), "provides": list(spec.provides),
+                                      "cache_key": key, "seconds": round(dt, 4)})
+            composite = slots["composite"]
+            upstream_epoch_key = upstream[-1] if upstream else None
+            inputs = [{"path": ds.source.path, "sha256": ds.source.sha256, "name": ds.name, "kind": ds.kind,
+                       "reader": ds.source.reader, "units": ds.source.units, "scale": ds.source.scale,
+                       "elements": ds.n_elements} for ds in recent if ds.source is not None]
+            provenance = {
+                "gdt_pipeline": packages.get("gdt-pipeline", "?"),
+                "workflow": {"path": _rel(wf.path, wf.dir), "sha256": wf.sha256, "name": model.name},
+                "epoch": {"id": epoch.id, "index": e_index, "role": epoch.role},
+                "seed": model.seed, "inputs": inputs, "stages": stage_records,
+                "registration": _registration_record(slots.get("registration")),
+                "packages": packages, "python": platform.python_version(),
+                "started": started, "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+                "counts": composite.counts(), "epoch_key": upstream_epoch_key,
+            }
+            layer = store.write_epoch(epoch.id, composite_to_elements(composite), provenance)
+            summary = EpochSummary(epoch.id, composite.counts(), time.perf_counter() - t_epoch, target / "epochs"
+                                   / Path(layer).name)
+            result.epochs.append(summary)
+            reporter.epoch_finished(summary)
+            lock["epochs"].append({"id": epoch.id, "inputs": inputs, "epoch_key": upstream_epoch_key,
+                                   "stages": [{k: r[k] for k in ("uses", "plugin", "plugin_version", "version",
+                                                                 "params", "seed", "cache_key")}
+                                              for r in stage_records]})
+        _write_json_atomic(staging / LOCK_NAME, lock)
+        _swap_into_place(staging, target)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return result
+
+
+def _registration_record(reg: Registration | None) -> dict[str, Any] | None:
+    if reg is None:
+        return None
+    return {"method": reg.method, "transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse,
+            "covariance": None if reg.covariance is None else reg.covariance.tolist()}
+
+
+def _write_json_atomic(path: Path, data: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=2, sort_keys=True, default=str)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _swap_into_place(staging: Path, target: Path) -> None:
+    """Move the finished twin into place; an old twin is moved aside first and removed only after the move."""
+    old = None
+    if target.exists():
+        old = target.parent / f".{target.name}.old-{os.getpid()}"
+        os.replace(target, old)
+    try:
+        os.replace(staging, target)
+    except BaseException:
+        if old is not None:
+            os.replace(old, target)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+

@@ -1,0 +1,41 @@
+"""Adapter from the engine's composite to the twin store's element sets (the store knows numpy and pxr only)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twin_store import ElementSet
+
+from .types import BoxUncertainty, Composite, GaussianUncertainty
+
+_TRIU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))  # xx xy xz yy yz zz
+
+
+def covariance6(cov: np.ndarray) -> np.ndarray:
+    """``(N,3,3)`` covariances packed as ``(N,6)`` in the order xx xy xz yy yz zz."""
+    return cov[:, _TRIU[0], _TRIU[1]]
+
+
+def composite_to_elements(composite: Composite) -> list[ElementSet]:
+    """One element set per composite item, with its uncertainty, states and scores."""
+    out = []
+    for it in composite.items:
+        ds = it.dataset
+        n = ds.n_elements
+        unc = ds.uncertainty
+        cov = hw = rot = None
+        model = "none"
+        summary = np.full(n, np.nan)
+        if isinstance(unc, GaussianUncertainty):
+            model, cov = "gaussian", covariance6(unc.covariance(n))
+            summary = np.asarray(unc.summary(n))
+        elif isinstance(unc, BoxUncertainty):
+            model = "box"
+            hw = np.broadcast_to(unc.half_widths, (n, 3))
+            rot = None if unc.rotation is None else np.broadcast_to(unc.rotation, (n, 3, 3))
+            summary = np.asarray(unc.summary(n))
+        out.append(ElementSet(key=it.key, kind=ds.kind, points=ds.points, faces=ds.faces, uncertainty_model=model,
+                              covariance=cov, half_widths=hw, rotation=rot, uncertainty_summary=summary,
+                              state=it.state, score=it.score.astype(np.float32), source_epoch=it.source_epoch,
+                              visible=it.visible))
+    return out

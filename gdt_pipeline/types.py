@@ -1,0 +1,379 @@
+"""The data that flows between stages: plain, frozen, numpy-backed dataclasses.
+
+Every per-element quantity is an array over elements (points of a point set, facets of a mesh), never a Python
+object per element. Arrays handed to these classes are made read-only so that a stage cannot change what another
+stage (or the twin) still holds; a stage builds new objects with :func:`dataclasses.replace` instead.
+
+Element convention: for a point set an element is a point; for a triangle mesh an element is a facet, and a facet
+is treated as infinitely many points that share the facet's uncertainty (paper Sec. 4.2.2).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+Role = Literal["as-designed", "as-is"]
+Kind = Literal["mesh", "points"]
+
+
+class ChangeState(enum.IntEnum):
+    """Per-element change state; the codes are the ones stored in the twin (``gdt:changeState``)."""
+
+    UNCHANGED = 0
+    NEW = 1
+    REMOVED = 2
+    OUTSIDE_ROV = 3
+
+
+def frozen_array(a: np.ndarray | list | tuple, dtype: type | np.dtype, ndim_shape: tuple[int | None, ...],
+                 what: str) -> np.ndarray:
+    """Return a read-only C-contiguous copy of ``a`` with the given dtype, checking its shape (None = any)."""
+    arr = np.ascontiguousarray(np.asarray(a, dtype=dtype))
+    if arr.ndim != len(ndim_shape) or any(s is not None and s != d for s, d in zip(ndim_shape, arr.shape, strict=True)):
+        want = "(" + ", ".join("N" if s is None else str(s) for s in ndim_shape) + ")"
+        raise ValueError(f"{what}: expected shape {want}, got {arr.shape}")
+    if arr is a or arr.base is not None:
+        arr = arr.copy()
+    arr.setflags(write=False)
+    return arr
+
+
+def _broadcast_rows(arr: np.ndarray, n: int, what: str) -> None:
+    if arr.shape[0] not in (1, n):
+        raise ValueError(f"{what}: {arr.shape[0]} rows for {n} elements (give 1 to broadcast, or one per element)")
+
+
+@dataclass(frozen=True)
+class GaussianUncertainty:
+    """Multivariate normal positional uncertainty per element: full 3x3 covariances ``(N,3,3)`` or one ``(1,3,3)``."""
+
+    cov: np.ndarray
+    family: Literal["gaussian"] = field(default="gaussian", init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "cov", frozen_array(self.cov, np.float64, (None, 3, 3), "gaussian covariance"))
+        if not np.all(np.isfinite(self.cov)):
+            raise ValueError("gaussian covariance has non-finite entries")
+        if not np.allclose(self.cov, np.swapaxes(self.cov, 1, 2), rtol=1e-9, atol=1e-15):
+            raise ValueError("gaussian covariance is not symmetric")
+
+    @classmethod
+    def isotropic(cls, sigma: float | np.ndarray) -> GaussianUncertainty:
+        """Isotropic covariance sigma² I, for one sigma or one per element."""
+        s = np.atleast_1d(np.asarray(sigma, dtype=np.float64))
+        return cls(cov=(s**2)[:, None, None] * np.eye(3)[None])
+
+    def covariance(self, n: int) -> np.ndarray:
+        """Covariances broadcast to ``(n,3,3)`` (a view when a single one is shared)."""
+        _broadcast_rows(self.cov, n, "gaussian covariance")
+        return np.broadcast_to(self.cov, (n, 3, 3))
+
+    def summary(self, n: int) -> np.ndarray:
+        """RMS standard deviation per element, sqrt(trace(Σ)/3): a scalar for display and reports."""
+        _broadcast_rows(self.cov, n, "gaussian covariance")
+        return np.broadcast_to(np.sqrt(np.trace(self.cov, axis1=1, axis2=2) / 3.0), (n,))
+
+    def take(self, idx: np.ndarray) -> GaussianUncertainty:
+        """The uncertainty of the elements ``idx`` (a shared covariance stays shared)."""
+        return self if self.cov.shape[0] == 1 else GaussianUncertainty(self.cov[idx])
+
+
+@dataclass(frozen=True)
+class BoxUncertainty:
+    """GUM rectangular error limits per element: uniform in a box of ``half_widths`` turned by ``rotation``.
+
+    ``half_widths`` is ``(N,3)`` or ``(1,3)``; ``rotation`` is ``(N,3,3)``, ``(1,3,3)`` or None for axis-aligned;
+    its columns are the box axes in world coordinates.
+    """
+
+    half_widths: np.ndarray
+    rotation: np.ndarray | None = None
+    family: Literal["box"] = field(default="box", init=False)
+
+    def __post_init__(self) -> None:
+        hw = frozen_array(self.half_widths, np.float64, (None, 3), "box half-widths")
+        object.__setattr__(self, "half_widths", hw)
+        if not np.all(np.isfinite(self.half_widths)) or np.any(self.half_widths <= 0):
+            raise ValueError("box half-widths must be finite and > 0")
+        if self.rotation is not None:
+            rot = frozen_array(self.rotation, np.float64, (None, 3, 3), "box rotation")
+            eye = np.einsum("nji,njk->nik", rot, rot)
+            if not np.allclose(eye, np.eye(3), atol=1e-6):
+                raise ValueError("box rotation is not orthonormal")
+            object.__setattr__(self, "rotation", rot)
+
+    def covariance(self, n: int) -> np.ndarray:
+        """Covariance of the uniform box, R diag(h²/3) Rᵀ, broadcast to ``(n,3,3)``."""
+        _broadcast_rows(self.half_widths, n, "box half-widths")
+        var = np.broadcast_to(self.half_widths**2 / 3.0, (n, 3))
+        diag = var[:, :, None] * np.eye(3)[None]
+        if self.rotation is None:
+            return diag
+        rot = np.broadcast_to(self.rotation, (n, 3, 3))
+        return rot @ diag @ np.swapaxes(rot, 1, 2)
+
+    def summary(self, n: int) -> np.ndarray:
+        """RMS standard deviation of the box per element, sqrt(Σh²/9)."""
+        _broadcast_rows(self.half_widths, n, "box half-widths")
+        return np.broadcast_to(np.sqrt(np.sum(self.half_widths**2, axis=1) / 9.0), (n,))
+
+    def take(self, idx: np.ndarray) -> BoxUncertainty:
+        """The uncertainty of the elements ``idx``."""
+        hw = self.half_widths if self.half_widths.shape[0] == 1 else self.half_widths[idx]
+        rot = None if self.rotation is None else (self.rotation if self.rotation.shape[0] == 1 else self.rotation[idx])
+        return BoxUncertainty(hw, rot)
+
+
+Uncertainty = GaussianUncertainty | BoxUncertainty
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    """Where a dataset came from: file, its sha256, the units it was written in and the scale applied on reading."""
+
+    path: str
+    sha256: str
+    units: str = "m"
+    scale: float = 1.0
+    reader: str = ""
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """One geometry of one epoch: a point set ``points (N,3)`` or a triangle mesh ``points (V,3)`` + ``faces (F,3)``."""
+
+    name: str
+    role: Role
+    points: np.ndarray
+    faces: np.ndarray | None = None
+    source: SourceInfo | None = None
+    uncertainty: Uncertainty | None = None
+    viewpoints: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        pts = frozen_array(self.points, np.float64, (None, 3), f"dataset {self.name!r} points")
+        object.__setattr__(self, "points", pts)
+        if self.faces is not None:
+            faces = frozen_array(self.faces, np.int64, (None, 3), f"dataset {self.name!r} faces")
+            if faces.size and (faces.min() < 0 or faces.max() >= len(pts)):
+                raise ValueError(f"dataset {self.name!r}: face indices outside 0..{len(pts) - 1}")
+            object.__setattr__(self, "faces", faces)
+        if self.viewpoints is not None:
+            vps = frozen_array(self.viewpoints, np.float64, (None, 3), f"dataset {self.name!r} viewpoints")
+            object.__setattr__(self, "viewpoints", vps)
+
+    @property
+    def kind(self) -> Kind:
+        """"mesh" when the dataset has faces, else "points"."""
+        return "mesh" if self.faces is not None else "points"
+
+    @property
+    def n_elements(self) -> int:
+        """Number of elements: facets of a mesh, points of a point set."""
+        return len(self.faces) if self.faces is not None else len(self.points)
+
+    def element_positions(self) -> np.ndarray:
+        """One position per element: the point itself, or the facet's centroid."""
+        if self.faces is None:
+            return self.points
+        return self.points[self.faces].mean(axis=1)
+
+    def element_covariance(self) -> np.ndarray:
+        """Per-element covariance ``(E,3,3)`` of the attached uncertainty (second moments of a box)."""
+        if self.uncertainty is None:
+            raise ValueError(f"dataset {self.name!r} has no uncertainty attached (add an uncertainty stage)")
+        return self.uncertainty.covariance(self.n_elements)
+
+    def with_uncertainty(self, uncertainty: Uncertainty) -> Dataset:
+        """A copy with ``uncertainty`` attached, checked against the element count."""
+        uncertainty.covariance(self.n_elements)  # raises on a row-count mismatch
+        return dataclasses.replace(self, uncertainty=uncertainty)
+
+    def transformed(self, transform: np.ndarray) -> Dataset:
+        """A copy moved by a 4x4 rigid transform; covariances and box axes are rotated with it."""
+        t = np.asarray(transform, dtype=np.float64)
+        rot, trans = t[:3, :3], t[:3, 3]
+        unc = self.uncertainty
+        if isinstance(unc, GaussianUncertainty):
+            unc = GaussianUncertainty(rot[None] @ unc.cov @ rot.T[None])
+        elif isinstance(unc, BoxUncertainty):
+            base = np.eye(3)[None] if unc.rotation is None else unc.rotation
+            unc = BoxUncertainty(unc.half_widths, rot[None] @ base)
+        vps = None if self.viewpoints is None else self.viewpoints @ rot.T + trans
+        return dataclasses.replace(self, points=self.points @ rot.T + trans, uncertainty=unc, viewpoints=vps)
+
+
+@dataclass(frozen=True)
+class RegionOfView:
+    """The space the sensors of an epoch measured: a closed triangle surface with a vectorised ``contains``."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+    def __post_init__(self) -> None:
+        verts = frozen_array(self.vertices, np.float64, (None, 3), "region of view vertices")
+        object.__setattr__(self, "vertices", verts)
+        object.__setattr__(self, "faces", frozen_array(self.faces, np.int64, (None, 3), "region of view faces"))
+
+    @classmethod
+    def box(cls, lower: np.ndarray | list[float], upper: np.ndarray | list[float]) -> RegionOfView:
+        """An axis-aligned box region from its two corners."""
+        import trimesh
+
+        lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+        if np.any(hi <= lo):
+            raise ValueError(f"region of view box: upper {hi.tolist()} must exceed lower {lo.tolist()}")
+        mesh = trimesh.creation.box(extents=hi - lo)
+        mesh.apply_translation((hi + lo) / 2)
+        return cls(mesh.vertices, mesh.faces)
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Boolean mask of the points strictly inside the closed surface (parity of ray intersections)."""
+        import open3d as o3d  # imported here: open3d is heavy and only a region-of-view query needs it
+
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
+                            o3d.core.Tensor(self.faces.astype(np.uint32)))
+        pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        return scene.compute_occupancy(o3d.core.Tensor(pts)).numpy().astype(bool)
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """For every element of one recent dataset: the matched reference element and position, or none.
+
+    ``ref_item`` indexes the reference composite's items (-1: no correspondence inside the search space),
+    ``ref_element`` the element within that item, ``position`` the matched position on the reference
+    (a point, or the closest point on a facet), ``distance`` the Euclidean distance to it (NaN when none).
+    """
+
+    query: int
+    ref_item: np.ndarray
+    ref_element: np.ndarray
+    position: np.ndarray
+    distance: np.ndarray
+    method: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "ref_item", frozen_array(self.ref_item, np.int64, (None,), "ref_item"))
+        n = len(self.ref_item)
+        object.__setattr__(self, "ref_element", frozen_array(self.ref_element, np.int64, (n,), "ref_element"))
+        object.__setattr__(self, "position", frozen_array(self.position, np.float64, (n, 3), "matched position"))
+        object.__setattr__(self, "distance", frozen_array(self.distance, np.float64, (n,), "distance"))
+
+    @property
+    def found(self) -> np.ndarray:
+        """Mask of the elements that have a correspondence."""
+        return self.ref_item >= 0
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Dissimilarity per element of one recent dataset (NaN where there was no correspondence)."""
+
+    query: int
+    score: np.ndarray
+    measure: str
+    p_value: np.ndarray | None = None
+    tolerance: float | None = None  # ε_T of a numerical integration, when the measure used one
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "score", frozen_array(self.score, np.float64, (None,), "score"))
+        if self.p_value is not None:
+            object.__setattr__(self, "p_value", frozen_array(self.p_value, np.float64, (len(self.score),), "p-value"))
+
+
+@dataclass(frozen=True)
+class Change:
+    """Per element of one recent dataset: the score, the change mask and the change state."""
+
+    query: int
+    score: np.ndarray
+    mask: np.ndarray
+    state: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "score", frozen_array(self.score, np.float64, (None,), "change score"))
+        n = len(self.score)
+        object.__setattr__(self, "mask", frozen_array(self.mask, np.bool_, (n,), "change mask"))
+        object.__setattr__(self, "state", frozen_array(self.state, np.uint8, (n,), "change state"))
+
+
+@dataclass(frozen=True)
+class Registration:
+    """A rigid transform from the recent data to the twin, with its quality and 6x6 covariance when known."""
+
+    transform: np.ndarray
+    fitness: float = 1.0
+    rmse: float = 0.0
+    covariance: np.ndarray | None = None
+    method: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "transform", frozen_array(self.transform, np.float64, (4, 4), "transform"))
+        if self.covariance is not None:
+            object.__setattr__(self, "covariance", frozen_array(self.covariance, np.float64, (6, 6), "covariance"))
+
+
+@dataclass(frozen=True)
+class CompositeItem:
+    """One dataset held in the twin with its per-element state: what the twin stores as one prim.
+
+    ``state`` (uint8 ChangeState codes), ``score`` (NaN = not scored), ``source_epoch`` (index of the epoch that
+    supplied each element) and ``visible`` (the element is part of the composite now; hidden elements stay in the
+    history) are all arrays over the dataset's elements.
+    """
+
+    key: str
+    dataset: Dataset
+    epoch: str
+    state: np.ndarray
+    score: np.ndarray
+    source_epoch: np.ndarray
+    visible: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = self.dataset.n_elements
+        object.__setattr__(self, "state", frozen_array(self.state, np.uint8, (n,), f"{self.key}: state"))
+        object.__setattr__(self, "score", frozen_array(self.score, np.float64, (n,), f"{self.key}: score"))
+        object.__setattr__(self, "source_epoch", frozen_array(self.source_epoch, np.int32, (n,), f"{self.key}: source"))
+        object.__setattr__(self, "visible", frozen_array(self.visible, np.bool_, (n,), f"{self.key}: visible"))
+
+
+@dataclass(frozen=True)
+class Composite:
+    """The composite 3D image after an epoch: every item the twin holds, visible or hidden."""
+
+    items: tuple[CompositeItem, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "items", tuple(self.items))
+        keys = [it.key for it in self.items]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"composite has duplicate item keys: {sorted(k for k in set(keys) if keys.count(k) > 1)}")
+
+    def counts(self) -> dict[str, int]:
+        """Number of visible elements per change state name, over all items."""
+        out = {s.name.lower(): 0 for s in ChangeState}
+        for it in self.items:
+            codes = np.bincount(it.state[it.visible], minlength=len(ChangeState))
+            for s in ChangeState:
+                out[s.name.lower()] += int(codes[s])
+        return out
+
+
+@dataclass(frozen=True)
+class EpochInfo:
+    """What a stage may know about the epoch it runs in."""
+
+    id: str
+    index: int
+    role: Role
+    seed: int
+    workflow_dir: Path

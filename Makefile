@@ -17,6 +17,9 @@ demo: setup
 test: setup
 	$(BIN)/python -m pytest -q -p no:cacheprovider
 
+bench: setup
+	$(BIN)/python bench/engine_throughput.py
+
 lint: setup
 	$(BIN)/ruff check .
 

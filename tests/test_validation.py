@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -146,3 +147,13 @@ def test_schema_is_a_discriminated_union_on_uses(registry) -> None:
 def test_shipped_workflows_reference_the_schema() -> None:
     for wf in (REPO / "workflows").glob("*.yaml"):
         assert "$schema=" in wf.read_text().splitlines()[0], wf
+
+
+def test_committed_schema_matches_the_builtin_stages() -> None:
+    """docs/gdt-workflow.schema.json is what editors validate against: it must follow the built-in stages."""
+    from gdt_pipeline.plugins import load_registry
+
+    builtin = load_registry(blocked={"gdt-c2c"})
+    committed = json.loads((REPO / "docs" / "gdt-workflow.schema.json").read_text())
+    assert committed == json.loads(json.dumps(json_schema(builtin))), (
+        "regenerate with: GDT_BLOCKED_PLUGINS=c2c .venv/bin/gdt schema -o docs/gdt-workflow.schema.json")

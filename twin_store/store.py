@@ -350,7 +350,7 @@ class TwinStore:
                               UsdGeom.Tokens.constant).Set(es.uncertainty_model)
         for name, (tname, interp, arr, size, doc) in _values(es).items():
             old = api.GetPrimvar(name)
-            if old and _same(old.Get(), arr if size == 1 else arr):
+            if old and _same(old.Get(), arr):
                 continue
             pv = api.CreatePrimvar(name, tname, interp, size)  # restates type and interpolation in this layer
             pv.SetInterpolation(interp)

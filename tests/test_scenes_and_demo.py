@@ -42,7 +42,8 @@ def test_scene_truth_noise_and_occlusion(scene: Path) -> None:
     # clean positions lie on the as-is surfaces; changed ones are off every CAD surface
     rs = o3d.t.geometry.RaycastingScene()
     for mesh, _ in objects.values():
-        rs.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+        rs.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                         o3d.core.Tensor(mesh.faces.astype(np.uint32)))
     assert rs.compute_distance(o3d.core.Tensor(clean.astype(np.float32))).numpy().max() < 1e-5
     cad = o3d.t.geometry.RaycastingScene()
     for mesh, in_cad in objects.values():

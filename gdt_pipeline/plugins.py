@@ -239,14 +239,15 @@ def load_registry(*, blocked: Iterable[str] | None = None, extra: Iterable[tuple
     warnings: list[str] = []
     loaded: list[_LoadedPlugin] = []
     sources: list[tuple[str, str, str, object]] = []
-    seen_eps: set[str] = set()
+    seen_eps: set[tuple[str, str, str]] = set()
+    used_names: set[str] = set()
     for ep in _entry_points():
         dist = ep.dist.name if ep.dist is not None else "?"
         version = ep.dist.version if ep.dist is not None else "?"
-        if ep.name in seen_eps:
+        if (dist, ep.name, ep.value) in seen_eps:
             # The same distribution can be visible twice (e.g. an editable install plus a stale egg-info).
             continue
-        seen_eps.add(ep.name)
+        seen_eps.add((dist, ep.name, ep.value))
         if ep.name in blocked_names or dist in blocked_names:
             pm.set_blocked(ep.name)
             log.info("plugin %s (%s) blocked by %s", ep.name, dist, BLOCK_ENV)
@@ -257,7 +258,11 @@ def load_registry(*, blocked: Iterable[str] | None = None, extra: Iterable[tuple
             warnings.append(f"plugin {ep.name!r} ({dist} {version}) failed to load and was skipped: "
                             f"{type(exc).__name__}: {exc}")
             continue
-        sources.append((ep.name, dist, version, module))
+        # Two distributions may pick the same entry-point name; pluggy needs unique plugin names, and the stage
+        # names (checked below) are what must not clash.
+        name = ep.name if ep.name not in used_names else f"{dist}:{ep.name}"
+        used_names.add(name)
+        sources.append((name, dist, version, module))
     for name, module in extra:
         sources.append((name, name, "0", module))
     for name, dist, version, module in sources:

@@ -125,3 +125,12 @@ def test_engine_never_imports_a_concrete_stage() -> None:
                 bad.append(f"{path}:{n}: {line.strip()}")
     assert not bad, bad
     assert Path(REPO / "plugins" / "gdt-c2c" / "pyproject.toml").is_file()
+
+
+def test_same_entry_point_name_from_another_distribution_is_not_skipped(monkeypatch) -> None:
+    """A third party's entry point called `io` must still load (and here clash on its stage name, loudly)."""
+    real = list(im.entry_points(group="gdt_pipeline"))
+    clash = im.EntryPoint(name="io", value="gdt_c2c", group="gdt_pipeline")
+    monkeypatch.setattr(plugins_mod, "_entry_points", lambda: [*real, clash])
+    with pytest.raises(PluginError, match="stage name 'c2c' is provided twice"):
+        load_registry(blocked=())

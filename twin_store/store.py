@@ -96,15 +96,8 @@ class ElementSet:
         return len(self.faces) if self.faces is not None else len(self.points)
 
 
-def _fsync_file(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_dir(path: Path) -> None:
+def _fsync(path: Path) -> None:
+    """Flush a file, or a folder's entries after a rename, to disk."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -117,9 +110,9 @@ def _export_atomic(layer: Sdf.Layer, target: Path) -> None:
     tmp = target.with_name(f".{target.stem}.tmp-{os.getpid()}{target.suffix}")
     if not layer.Export(str(tmp)):
         raise TwinStoreError(f"could not write {tmp}")
-    _fsync_file(tmp)
+    _fsync(tmp)
     os.replace(tmp, target)
-    _fsync_dir(target.parent)
+    _fsync(target.parent)
     cached = Sdf.Layer.Find(str(target))
     if cached is not None:
         cached.Reload(force=True)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.metadata as im
 import json
 import re
+import sys
 import types
 from pathlib import Path
 
@@ -129,8 +130,10 @@ def test_engine_never_imports_a_concrete_stage() -> None:
 
 def test_same_entry_point_name_from_another_distribution_is_not_skipped(monkeypatch) -> None:
     """A third party's entry point called `io` must still load (and here clash on its stage name, loudly)."""
+    third = _module("third_party_io", [StageSpec(name="fixed", family="threshold", version="2", params=_P, run=_run)])
+    monkeypatch.setitem(sys.modules, "third_party_io", third)
     real = list(im.entry_points(group="gdt_pipeline"))
-    clash = im.EntryPoint(name="io", value="gdt_c2c", group="gdt_pipeline")
+    clash = im.EntryPoint(name="io", value="third_party_io", group="gdt_pipeline")
     monkeypatch.setattr(plugins_mod, "_entry_points", lambda: [*real, clash])
-    with pytest.raises(PluginError, match="stage name 'c2c' is provided twice"):
+    with pytest.raises(PluginError, match="stage name 'fixed' is provided twice"):
         load_registry(blocked=())

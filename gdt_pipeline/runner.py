@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from twin_store import TwinStore
+from twin_store import TwinStore, TwinStoreError, writer_lock
 
 from .errors import GdtError, InputError, StageError
 from .plugins import NullProgress, Progress, ReadRequest, Registry, StageContext, StageSpec, load_registry
@@ -217,8 +217,38 @@ def run_workflow(path: str | Path, *, registry: Registry | None = None, twin: st
     registry = registry or load_registry()
     reporter = reporter or Reporter()
     wf = load_workflow(path, registry)
-    model = wf.model
     target = Path(twin).resolve() if twin is not None else wf.twin_path()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with writer_lock(target):
+            return _run_locked(wf, registry, reporter, target, overwrite)
+    except TwinStoreError as exc:
+        raise GdtError(str(exc)) from exc
+
+
+def _remove_stale_staging(target: Path) -> None:
+    """Remove partial twins of runs that were killed (their process is gone); a live run holds the lock anyway."""
+    for stale in target.parent.glob(f".{target.name}.partial-*"):
+        pid = stale.name.rsplit("-", 1)[-1]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(stale, ignore_errors=True)
+            log.info("removed the partial twin of an interrupted run: %s", stale)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _run_locked(wf: LoadedWorkflow, registry: Registry, reporter: Reporter, target: Path,
+                overwrite: bool) -> RunResult:
+    model = wf.model
+    _remove_stale_staging(target)
     if target.exists() and not overwrite:
         raise GdtError(f"twin {target} already exists; pass --overwrite to replace it (the old twin stays intact "
                        f"until the new one is complete)")
@@ -234,7 +264,6 @@ def run_workflow(path: str | Path, *, registry: Registry | None = None, twin: st
             except OSError as exc:
                 raise InputError(f"epoch {epoch.id}, input {i_index} ({p}): cannot read: {exc.strerror}") from exc
 
-    target.parent.mkdir(parents=True, exist_ok=True)
     staging = target.parent / f".{target.name}.partial-{os.getpid()}"
     if staging.exists():
         shutil.rmtree(staging)
@@ -243,7 +272,7 @@ def run_workflow(path: str | Path, *, registry: Registry | None = None, twin: st
                             "seed": model.seed, "packages": packages, "epochs": []}
     result = RunResult(twin=target, lock=target / LOCK_NAME)
     try:
-        store = TwinStore.create(staging, meters_per_unit=UNITS[model.units], up_axis=model.up_axis)
+        store = TwinStore.create(staging, meters_per_unit=UNITS[model.units], up_axis=model.up_axis, lock=False)
         composite: Composite | None = None
         upstream_epoch_key: str | None = None
         for e_index, epoch in enumerate(model.epochs):

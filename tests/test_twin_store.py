@@ -86,7 +86,9 @@ def test_plain_pxr_reads_back_every_array(twin) -> None:
     assert np.array_equal(np.asarray(papi.GetPrimvar("gdt:changeState").Get()), p.state)
     assert np.array_equal(np.asarray(papi.GetPrimvar("gdt:visible").Get()), p.visible)
     assert np.array_equal(np.asarray(pts.GetIdsAttr().Get()), np.arange(200))
-    assert pts.GetWidthsInterpolation() == "constant"
+    assert pts.GetWidthsInterpolation() == "vertex"
+    widths = np.asarray(pts.GetWidthsAttr().Get())
+    assert np.all(widths[:5] == 0) and np.all(widths[5:] > 0)  # hidden points have zero width in any viewer
 
 
 def test_later_layers_hold_only_overrides(twin) -> None:

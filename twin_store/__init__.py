@@ -2,6 +2,26 @@
 
 Depends on numpy and pxr only."""
 
-from .store import STATE_COLORS, STATE_NAMES, ElementSet, TwinStore, TwinStoreError
+from .store import (
+    STATE_COLORS,
+    STATE_NAMES,
+    ElementSet,
+    EpochRecord,
+    SetDiff,
+    TwinStore,
+    TwinStoreError,
+    lock_path,
+    writer_lock,
+)
 
-__all__ = ["STATE_COLORS", "STATE_NAMES", "ElementSet", "TwinStore", "TwinStoreError"]
+__all__ = [
+    "STATE_COLORS",
+    "STATE_NAMES",
+    "ElementSet",
+    "EpochRecord",
+    "SetDiff",
+    "TwinStore",
+    "TwinStoreError",
+    "lock_path",
+    "writer_lock",
+]

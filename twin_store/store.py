@@ -15,10 +15,14 @@ precision. Per-element values are primvars in the ``gdt:`` namespace with interp
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
-from collections.abc import Sequence
-from dataclasses import dataclass
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +64,7 @@ class ElementSet:
     source_epoch: np.ndarray
     visible: np.ndarray
     ids: np.ndarray | None = None
+    display_color: np.ndarray | None = None  # (E,3) in 0..1; default: baked from the change state
 
     def __post_init__(self) -> None:
         if not Tf.IsValidIdentifier(self.key):
@@ -80,7 +85,8 @@ class ElementSet:
                 raise TwinStoreError(f"{self.key}: a point set has no faces")
             n = len(pts)
         shapes = {"uncertainty_summary": (n,), "state": (n,), "score": (n,), "source_epoch": (n,), "visible": (n,),
-                  "covariance": (n, 6), "half_widths": (n, 3), "rotation": (n, 3, 3), "ids": (n,)}
+                  "covariance": (n, 6), "half_widths": (n, 3), "rotation": (n, 3, 3), "ids": (n,),
+                  "display_color": (n, 3)}
         for name, shape in shapes.items():
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
@@ -94,6 +100,37 @@ class ElementSet:
     def n_elements(self) -> int:
         """Number of elements (facets of a mesh, points of a point set)."""
         return len(self.faces) if self.faces is not None else len(self.points)
+
+
+def lock_path(twin: Path) -> Path:
+    """The writer lock of a twin: a file beside the twin folder (the folder itself may be swapped whole)."""
+    twin = Path(twin).resolve()
+    return twin.parent / f".{twin.name}.lock"
+
+
+@contextlib.contextmanager
+def writer_lock(twin: str | Path) -> Iterator[None]:
+    """Hold the twin's writer lock; a second writer gets a clear TwinStoreError instead of waiting or corrupting."""
+    path = lock_path(Path(twin))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fh = open(path, "a+", encoding="utf-8")  # noqa: SIM115  (closed in finally; flock needs the open file)
+    try:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            holder = fh.read().strip() or "unknown process"
+            raise TwinStoreError(f"twin {Path(twin).resolve()} is being written by another writer ({holder}); "
+                                 f"wait for it to finish (lock: {path})") from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()} since {time.strftime('%Y-%m-%dT%H:%M:%S')}")
+        fh.flush()
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            fh.truncate(0)
+        fh.close()  # closing releases the flock
 
 
 def _fsync(path: Path) -> None:
@@ -152,7 +189,8 @@ def _values(es: ElementSet) -> dict[str, tuple[Any, Any, np.ndarray, int, str | 
         "gdt:visible": (Sdf.ValueTypeNames.BoolArray, interp, np.asarray(es.visible, dtype=bool), 1,
                         "Element is part of the composite at this epoch; hidden elements stay in the history."),
         "displayColor": (Sdf.ValueTypeNames.Color3fArray, interp,
-                         STATE_COLORS[np.minimum(state, len(STATE_COLORS) - 1)], 1, None),
+                         STATE_COLORS[np.minimum(state, len(STATE_COLORS) - 1)] if es.display_color is None
+                         else np.asarray(es.display_color, dtype=np.float32), 1, None),
     }
     if es.covariance is not None:
         out["gdt:covariance"] = (Sdf.ValueTypeNames.FloatArray, interp,
@@ -165,6 +203,12 @@ def _values(es: ElementSet) -> dict[str, tuple[Any, Any, np.ndarray, int, str | 
                                np.asarray(es.rotation, dtype=np.float32).reshape(-1), 9,
                                "Box axes per element: a row-major 3x3 rotation whose columns are the axes.")
     return out
+
+
+def _point_widths(points: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Per-point widths: 1/500 of the set's diagonal, and 0 for hidden points, so that plain viewers hide them."""
+    diag = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
+    return np.where(np.asarray(visible, dtype=bool), diag / 500.0 if diag > 0 else 0.002, 0.0).astype(np.float32)
 
 
 def _vt(type_name: Any, arr: np.ndarray) -> Any:
@@ -185,8 +229,10 @@ def _same(old: Any, new: np.ndarray) -> bool:
 class TwinStore:
     """A twin folder: create or open it, write an epoch, read the composite at any epoch and its provenance."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, lock: bool = True) -> None:
         self._path = path
+        self._lock = lock
+        self._holding = False
 
     @property
     def path(self) -> Path:
@@ -200,8 +246,11 @@ class TwinStore:
 
     @classmethod
     def create(cls, path: str | Path, *, meters_per_unit: float = 1.0, up_axis: str = "Z",
-               overwrite: bool = False) -> TwinStore:
-        """Create an empty twin folder (root layer with no epochs yet)."""
+               overwrite: bool = False, lock: bool = True) -> TwinStore:
+        """Create an empty twin folder (root layer with no epochs yet).
+
+        ``lock=False`` is for a private folder whose caller already holds the lock of the twin it will become.
+        """
         path = Path(path)
         if (path / ROOT_NAME).exists() and not overwrite:
             raise TwinStoreError(f"twin {path} already exists")
@@ -217,7 +266,7 @@ class TwinStore:
         root.defaultPrim = TWIN_PRIM.strip("/")
         root.documentation = "gdt-pipeline twin: one sublayer per epoch, strongest first."
         _export_atomic(root, path / ROOT_NAME)
-        return cls(path)
+        return cls(path, lock=lock)
 
     @classmethod
     def open(cls, path: str | Path) -> TwinStore:
@@ -226,6 +275,19 @@ class TwinStore:
         if not (path / ROOT_NAME).is_file():
             raise TwinStoreError(f"{path} is not a twin (no {ROOT_NAME})")
         return cls(path)
+
+    @contextlib.contextmanager
+    def writing(self) -> Iterator[TwinStore]:
+        """Hold the writer lock across several epoch writes (write_epoch takes it itself otherwise)."""
+        if self._holding or not self._lock:
+            yield self
+            return
+        with writer_lock(self._path):
+            self._holding = True
+            try:
+                yield self
+            finally:
+                self._holding = False
 
     def _root(self) -> Sdf.Layer:
         return _open_layer(self.root_path)
@@ -253,6 +315,10 @@ class TwinStore:
 
     def write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict) -> Path:
         """Write one epoch layer holding the composite after this epoch; return the layer path."""
+        with self.writing():
+            return self._write_epoch(epoch_id, elements, provenance)
+
+    def _write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict) -> Path:
         if not Tf.IsValidIdentifier(epoch_id):
             raise TwinStoreError(f"epoch id {epoch_id!r} is not a valid identifier")
         existing = self.epochs()
@@ -306,13 +372,14 @@ class TwinStore:
             geom = UsdGeom.Points.Define(stage, path)
             ids = np.arange(len(pts), dtype=np.int64) if es.ids is None else np.asarray(es.ids, dtype=np.int64)
             geom.CreateIdsAttr(Vt.Int64Array.FromNumpy(ids))
-            diag = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0))) if len(pts) else 0.0
-            geom.CreateWidthsAttr(Vt.FloatArray([diag / 500.0 if diag > 0 else 0.002]))
-            geom.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+            geom.CreateWidthsAttr(Vt.FloatArray.FromNumpy(_point_widths(pts, es.visible)))
+            geom.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
         geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(local))
         geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, local.min(axis=0))),
                                              Gf.Vec3f(*map(float, local.max(axis=0)))]))
         geom.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*map(float, origin)))
+        if not np.any(es.visible):
+            geom.MakeInvisible()
         api = UsdGeom.PrimvarsAPI(geom.GetPrim())
         model = api.CreatePrimvar("gdt:uncertaintyModel", Sdf.ValueTypeNames.Token, UsdGeom.Tokens.constant)
         model.Set(es.uncertainty_model)
@@ -357,6 +424,18 @@ class TwinStore:
             mesh = UsdGeom.Mesh(prim)
             if not _same(mesh.GetHoleIndicesAttr().Get(), holes):
                 mesh.CreateHoleIndicesAttr().Set(Vt.IntArray.FromNumpy(holes))
+        else:
+            points = UsdGeom.Points(prim)
+            widths = _point_widths(np.asarray(es.points, dtype=np.float64), es.visible)
+            if not _same(points.GetWidthsAttr().Get(), widths):
+                points.CreateWidthsAttr().Set(Vt.FloatArray.FromNumpy(widths))
+                points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+        imageable = UsdGeom.Imageable(prim)
+        hidden_now = imageable.GetVisibilityAttr().Get() == UsdGeom.Tokens.invisible
+        if hidden_now and np.any(es.visible):
+            imageable.MakeVisible()
+        elif not hidden_now and not np.any(es.visible):
+            imageable.MakeInvisible()
 
     def read_epoch(self, epoch_id: str) -> list[ElementSet]:
         """The composite as it was at ``epoch_id`` (only the layers up to it are composed)."""
@@ -401,3 +480,110 @@ class TwinStore:
             raise TwinStoreError(f"{self._path}: no epoch {epoch_id!r}")
         data = _open_layer(self._epoch_file(epoch_id)).customLayerData.get("gdt", {})
         return json.loads(data.get("provenance_json", "{}"))
+
+    # ----------------------------------------------------------------------------------------------------------------
+    # History queries
+
+    def history(self) -> list[EpochRecord]:
+        """One record per epoch, oldest first: when it was made, from which inputs, and its state counts."""
+        out = []
+        for index, eid in enumerate(self.epochs()):
+            prov = self.provenance(eid)
+            counts = prov.get("counts") or _count_states(self.read_epoch(eid))
+            out.append(EpochRecord(id=eid, index=index, role=prov.get("epoch", {}).get("role", ""),
+                                   started=prov.get("started", ""), finished=prov.get("finished", ""),
+                                   inputs=prov.get("inputs", []), counts=counts, provenance=prov))
+        return out
+
+    def diff(self, epoch_a: str, epoch_b: str) -> list[SetDiff]:
+        """What changed from the twin at ``epoch_a`` to the twin at ``epoch_b``, per element set."""
+        epochs = self.epochs()
+        for e in (epoch_a, epoch_b):
+            if e not in epochs:
+                raise TwinStoreError(f"{self._path}: no epoch {e!r} (epochs: {', '.join(epochs) or 'none'})")
+        before = {e.key: e for e in self.read_epoch(epoch_a)}
+        out = []
+        for es in self.read_epoch(epoch_b):
+            old = before.get(es.key)
+            vis_b = np.asarray(es.visible, dtype=bool)
+            vis_a = np.zeros_like(vis_b) if old is None else np.asarray(old.visible, dtype=bool)
+            transitions: dict[str, int] = {}
+            if old is not None:
+                moved = old.state != es.state
+                pairs, counts = np.unique(np.stack([old.state[moved], es.state[moved]], axis=1), axis=0,
+                                          return_counts=True)
+                for (a, b), c in zip(pairs.tolist(), counts.tolist(), strict=True):
+                    transitions[f"{STATE_NAMES[a]}->{STATE_NAMES[b]}"] = int(c)
+            visible_states = np.bincount(es.state[vis_b], minlength=len(STATE_NAMES))
+            out.append(SetDiff(key=es.key, kind=es.kind, added=old is None, elements=es.n_elements,
+                               came_in=int(np.sum(vis_b & ~vis_a)), went_out=int(np.sum(vis_a & ~vis_b)),
+                               transitions=transitions,
+                               visible=dict(zip(STATE_NAMES, map(int, visible_states), strict=True))))
+        return out
+
+    def flatten(self, epoch_id: str, out: str | Path) -> Path:
+        """Write the twin as it was at ``epoch_id`` as one flat USD file, with every epoch's provenance copied in."""
+        out = Path(out)
+        epochs = self.epochs()
+        if epoch_id not in epochs:
+            raise TwinStoreError(f"{self._path}: no epoch {epoch_id!r} (epochs: {', '.join(epochs) or 'none'})")
+        upto = epochs[: epochs.index(epoch_id) + 1]
+        flat = self._stage_upto(upto).Flatten()
+        # Flattening keeps only the root layer's metadata: carry each epoch's provenance over explicitly.
+        flat.customLayerData = {"gdt": {"twin": str(self._path.resolve()), "epoch": epoch_id,
+                                        "epochs": Vt.StringArray(upto),
+                                        "state_names": Vt.StringArray(list(STATE_NAMES)),
+                                        "provenance_json": json.dumps({e: self.provenance(e) for e in upto},
+                                                                      sort_keys=True, default=str)}}
+        flat.defaultPrim = TWIN_PRIM.strip("/")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        _export_atomic(flat, out)
+        return out
+
+    def export_usdz(self, epoch_id: str, out: str | Path) -> Path:
+        """Package the twin at ``epoch_id`` as a .usdz (flattened, provenance included)."""
+        from pxr import UsdUtils
+
+        out = Path(out)
+        with tempfile.TemporaryDirectory() as tmp:
+            asset = self.flatten(epoch_id, Path(tmp) / f"{self._path.name}_{epoch_id}.usdc")
+            partial = out.with_name(f".{out.stem}.tmp-{os.getpid()}.usdz")
+            if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(asset)), str(partial)):
+                raise TwinStoreError(f"could not write {out}")
+            os.replace(partial, out)
+        return out
+
+
+@dataclass(frozen=True)
+class EpochRecord:
+    """One epoch of a twin's history."""
+
+    id: str
+    index: int
+    role: str
+    started: str
+    finished: str
+    inputs: list = field(default_factory=list)
+    counts: dict = field(default_factory=dict)
+    provenance: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SetDiff:
+    """How one element set changed between two epochs."""
+
+    key: str
+    kind: str
+    added: bool
+    elements: int
+    came_in: int
+    went_out: int
+    transitions: dict = field(default_factory=dict)
+    visible: dict = field(default_factory=dict)
+
+
+def _count_states(elements: Sequence[ElementSet]) -> dict[str, int]:
+    total = np.zeros(len(STATE_NAMES), dtype=np.int64)
+    for es in elements:
+        total += np.bincount(es.state[np.asarray(es.visible, dtype=bool)], minlength=len(STATE_NAMES))
+    return dict(zip(STATE_NAMES, map(int, total), strict=True))

@@ -16,10 +16,13 @@ from pathlib import Path
 from typing import Any
 
 import click
+import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 from rich.text import Text
+
+from twin_store import TwinStoreError
 
 from . import __version__
 from .errors import GdtError, WorkflowError
@@ -221,6 +224,112 @@ def scene(name: str, out_dir: Path, seed: int) -> None:
     click.echo(f"scene {name!r} written to {files.root}")
 
 
+def _open_twin(twin: Path, epoch: str | None) -> tuple[Any, str]:
+    from twin_store import TwinStore, TwinStoreError
+
+    store = TwinStore.open(twin)
+    epochs = store.epochs()
+    if not epochs:
+        raise TwinStoreError(f"twin {twin} has no epochs yet")
+    if epoch is None:
+        return store, epochs[-1]
+    if epoch not in epochs:
+        raise TwinStoreError(f"twin {twin} has no epoch {epoch!r} (epochs: {', '.join(epochs)})")
+    return store, epoch
+
+
+def _counts_text(counts: dict[str, int]) -> str:
+    return ", ".join(f"{counts.get(k, 0)} {k.replace('_', ' ')}" for k in ("unchanged", "new", "removed",
+                                                                             "outside_rov"))
+
+
+@cli.command("log")
+@click.argument("twin", type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+def log_cmd(twin: Path, as_json: bool) -> None:
+    """List the epochs of TWIN: when, from which inputs, and how many elements are unchanged/new/removed."""
+    from twin_store import TwinStore
+
+    records = TwinStore.open(twin).history()
+    if as_json:
+        click.echo(json.dumps([{"epoch": r.id, "index": r.index, "role": r.role, "started": r.started,
+                                "finished": r.finished, "inputs": r.inputs, "counts": r.counts} for r in records],
+                              indent=2))
+        return
+    table = Table(title=f"{twin} ({len(records)} epochs)")
+    for col in ("epoch", "role", "finished (UTC)", "inputs", "visible elements"):
+        table.add_column(col)
+    for r in records:
+        inputs = "\n".join(f"{i.get('path')} ({str(i.get('sha256', ''))[:12]}, {i.get('elements', '?')} el.)"
+                           for i in r.inputs)
+        table.add_row(r.id, r.role, r.finished, inputs, _counts_text(r.counts))
+    Console(width=max(140, out_console.width)).print(table)
+
+
+@cli.command()
+@click.argument("twin", type=click.Path(path_type=Path))
+@click.option("--epoch", help="Epoch id (default: the latest).")
+@click.option("-o", "--output", type=click.Path(path_type=Path),
+              help="Write the twin at that epoch: .usda/.usdc (flattened), .usdz, .obj, or .ply (a folder of one PLY "
+                   "per element set).")
+def show(twin: Path, epoch: str | None, output: Path | None) -> None:
+    """Show the twin as it was at an epoch, or write it to a file."""
+    from .export import export_twin
+
+    store, epoch = _open_twin(twin, epoch)
+    if output is not None:
+        for path in export_twin(store, epoch, output):
+            click.echo(f"wrote {path}")
+        return
+    table = Table(title=f"{twin} at epoch {epoch}")
+    for col in ("element set", "kind", "elements", "visible", "visible by state"):
+        table.add_column(col)
+    for es in store.read_epoch(epoch):
+        vis = es.visible.astype(bool)
+        counts = {n: int(c) for n, c in zip(("unchanged", "new", "removed", "outside_rov"),
+                                            np.bincount(es.state[vis], minlength=4), strict=True)}
+        table.add_row(es.key, es.kind, str(es.n_elements), str(int(vis.sum())), _counts_text(counts))
+    Console(width=max(120, out_console.width)).print(table)
+
+
+@cli.command()
+@click.argument("twin", type=click.Path(path_type=Path))
+@click.argument("epoch_a")
+@click.argument("epoch_b")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+def diff(twin: Path, epoch_a: str, epoch_b: str, as_json: bool) -> None:
+    """What changed in TWIN from EPOCH_A to EPOCH_B, per element set."""
+    from twin_store import TwinStore
+
+    rows = TwinStore.open(twin).diff(epoch_a, epoch_b)
+    if as_json:
+        click.echo(json.dumps([r.__dict__ for r in rows], indent=2))
+        return
+    table = Table(title=f"{twin}: {epoch_a} -> {epoch_b}")
+    for col in ("element set", "kind", "status", "came in", "went out", "state changes"):
+        table.add_column(col)
+    for r in rows:
+        changes = ", ".join(f"{k}: {v}" for k, v in r.transitions.items()) or "-"
+        table.add_row(r.key, r.kind, "added" if r.added else "kept", str(r.came_in), str(r.went_out), changes)
+    Console(width=max(120, out_console.width)).print(table)
+
+
+@cli.command()
+@click.argument("twin", type=click.Path(path_type=Path))
+@click.option("--epoch", help="Epoch id (default: the latest).")
+@click.option("--format", "fmt", type=click.Choice(["ply", "obj", "usdz", "usda", "usdc"]), required=True,
+              help="ply: a folder with one PLY per element set; obj: one file; usdz/usda/usdc: flattened USD with "
+                   "the provenance of every epoch.")
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="File (or folder for ply).")
+def export(twin: Path, epoch: str | None, fmt: str, output: Path) -> None:
+    """Export the twin at an epoch to PLY, OBJ or USD(Z)."""
+    from .export import export_twin
+
+    store, epoch = _open_twin(twin, epoch)
+    for path in export_twin(store, epoch, output, fmt):
+        click.echo(f"wrote {path}")
+
+
 def main() -> None:
     """Entry point of the ``gdt`` command."""
     debug = "--debug" in sys.argv[1:]
@@ -237,7 +346,7 @@ def main() -> None:
     except KeyboardInterrupt:
         err_console.print("interrupted; nothing was written to the twin")
         raise SystemExit(130) from None
-    except GdtError as exc:
+    except (GdtError, TwinStoreError) as exc:
         if debug:
             traceback.print_exc()
         err_console.print(Text.assemble(("error: ", "bold red"), str(exc)), soft_wrap=True)

@@ -545,6 +545,7 @@ class TwinStore:
         from pxr import UsdUtils
 
         out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory() as tmp:
             asset = self.flatten(epoch_id, Path(tmp) / f"{self._path.name}_{epoch_id}.usdc")
             partial = out.with_name(f".{out.stem}.tmp-{os.getpid()}.usdz")

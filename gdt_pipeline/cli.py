@@ -270,8 +270,8 @@ def log_cmd(twin: Path, as_json: bool) -> None:
 @click.argument("twin", type=click.Path(path_type=Path))
 @click.option("--epoch", help="Epoch id (default: the latest).")
 @click.option("-o", "--output", type=click.Path(path_type=Path),
-              help="Write the twin at that epoch: .usda/.usdc (flattened), .usdz, .obj, or .ply (a folder of one PLY "
-                   "per element set).")
+              help="Write the twin at that epoch: .usda/.usdc (flattened), .usdz, .obj, .ply (a folder of one PLY "
+                   "per element set), or .png (a picture of what a USD viewer shows).")
 def show(twin: Path, epoch: str | None, output: Path | None) -> None:
     """Show the twin as it was at an epoch, or write it to a file."""
     from .export import export_twin
@@ -317,7 +317,7 @@ def diff(twin: Path, epoch_a: str, epoch_b: str, as_json: bool) -> None:
 @cli.command()
 @click.argument("twin", type=click.Path(path_type=Path))
 @click.option("--epoch", help="Epoch id (default: the latest).")
-@click.option("--format", "fmt", type=click.Choice(["ply", "obj", "usdz", "usda", "usdc"]), required=True,
+@click.option("--format", "fmt", type=click.Choice(["ply", "obj", "usdz", "usda", "usdc", "png"]), required=True,
               help="ply: a folder with one PLY per element set; obj: one file; usdz/usda/usdc: flattened USD with "
                    "the provenance of every epoch.")
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="File (or folder for ply).")

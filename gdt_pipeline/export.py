@@ -1,4 +1,4 @@
-"""Export the twin at an epoch to exchange formats: flat USD, USDZ, PLY (one file per element set) and OBJ.
+"""Export the twin at an epoch: flat USD, USDZ, PLY (one file per element set), OBJ, or a PNG picture.
 
 PLY and OBJ carry the composite only (hidden elements are left out) with change colours; USD keeps everything,
 the history included. Point sets go through Open3D (PLY with double coordinates, so georeferenced clouds keep their
@@ -16,7 +16,7 @@ from twin_store import STATE_COLORS, ElementSet, TwinStore
 
 from .errors import GdtError
 
-FORMATS = ("usda", "usdc", "usdz", "ply", "obj")
+FORMATS = ("usda", "usdc", "usdz", "ply", "obj", "png")
 
 
 def _colors(es: ElementSet) -> np.ndarray:
@@ -81,6 +81,14 @@ def export_twin(store: TwinStore, epoch: str, out: Path, fmt: str | None = None)
         return [store.flatten(epoch, target)]
     if fmt == "usdz":
         return [store.export_usdz(epoch, out if out.suffix.lower() == ".usdz" else out.with_suffix(".usdz"))]
+    if fmt == "png":
+        import tempfile
+
+        from .render import render_file
+
+        with tempfile.TemporaryDirectory() as tmp:
+            flat = store.flatten(epoch, Path(tmp) / "flat.usdc")
+            return [render_file(flat, out if out.suffix.lower() == ".png" else out.with_suffix(".png"))]
     elements = store.read_epoch(epoch)
     if fmt == "obj":
         return [export_obj(elements, out if out.suffix.lower() == ".obj" else out.with_suffix(".obj"))]

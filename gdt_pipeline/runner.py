@@ -44,7 +44,7 @@ from .types import (
     Scores,
     SourceInfo,
 )
-from .workflow import UNITS, EpochSpec, LoadedWorkflow, iter_chain, load_workflow, resolved_params
+from .workflow import UNITS, LoadedWorkflow, iter_chain, load_workflow
 
 log = logging.getLogger("gdt.run")
 
@@ -117,13 +117,13 @@ class Reporter:
 
     progress: Progress = NullProgress()
 
-    def epoch_started(self, epoch: EpochSpec, index: int, total: int) -> None:
+    def epoch_started(self, epoch: EpochPlan, index: int, total: int) -> None:
         """An epoch begins."""
 
-    def stage_started(self, epoch: EpochSpec, index: int, spec: StageSpec) -> None:
+    def stage_started(self, epoch: EpochPlan, index: int, spec: StageSpec) -> None:
         """A stage begins."""
 
-    def stage_finished(self, epoch: EpochSpec, index: int, spec: StageSpec, seconds: float) -> None:
+    def stage_finished(self, epoch: EpochPlan, index: int, spec: StageSpec, seconds: float) -> None:
         """A stage ended."""
 
     def epoch_finished(self, summary: EpochSummary) -> None:
@@ -148,11 +148,73 @@ def _check_dataset(ds: Dataset, where: str) -> None:
                          f"(first rows {first}); clean the file or remove those points")
 
 
-def _read_input(wf: LoadedWorkflow, registry: Registry, epoch: EpochSpec, i_index: int, digest: str) -> Dataset:
+@dataclass(frozen=True)
+class InputPlan:
+    """One input to read: where, as what, in which units, and (for audits) the digest it must have."""
+
+    path: Path
+    name: str
+    kind: str | None = None
+    reader: str | None = None
+    units: str = "m"
+    viewpoints: list | None = None
+    sha256: str | None = None
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    """One stage to run in an epoch: its position in the chain, record and validated params."""
+
+    index: int
+    spec: StageSpec
+    params: Any
+    id: str | None = None
+
+
+@dataclass(frozen=True)
+class EpochPlan:
+    """One epoch to run."""
+
+    id: str
+    index: int
+    role: str
+    inputs: list[InputPlan]
+    stages: list[StagePlan]
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """Everything a run needs, from a workflow file or from a twin's recorded provenance (audits)."""
+
+    name: str
+    workflow_path: Path
+    workflow_sha256: str
+    base_dir: Path
+    seed: int
+    units: str
+    up_axis: str
+    epochs: list[EpochPlan]
+
+
+def plan_from_workflow(wf: LoadedWorkflow, registry: Registry) -> RunPlan:
+    """The run plan a validated workflow describes."""
+    model = wf.model
+    epochs = []
+    for e_index, epoch in enumerate(model.epochs):
+        inputs = [InputPlan(path=wf.input_path(inp), name=inp.name or _identifier(Path(inp.path).stem), kind=inp.kind,
+                            reader=inp.reader, units=inp.units or model.units, viewpoints=inp.viewpoints)
+                  for inp in epoch.inputs]
+        stages = [StagePlan(index=s_index, spec=registry.get(entry.uses), params=entry.with_, id=entry.id)
+                  for s_index, entry in iter_chain(wf, epoch)]
+        epochs.append(EpochPlan(id=epoch.id, index=e_index, role=epoch.role, inputs=inputs, stages=stages))
+    return RunPlan(name=model.name, workflow_path=wf.path, workflow_sha256=wf.sha256, base_dir=wf.dir,
+                   seed=model.seed, units=model.units, up_axis=model.up_axis, epochs=epochs)
+
+
+def _read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int, digest: str) -> Dataset:
     inp = epoch.inputs[i_index]
-    path = wf.input_path(inp)
+    path = inp.path
     where = f"epoch {epoch.id}, input {i_index} ({path})"
-    name = inp.name or _identifier(path.stem)
     if inp.reader:
         spec = registry.get(inp.reader, family="reader")
     else:
@@ -160,8 +222,8 @@ def _read_input(wf: LoadedWorkflow, registry: Registry, epoch: EpochSpec, i_inde
         if not cands:
             raise InputError(f"{where}: no installed reader accepts this file")
         spec = cands[0]
-    ctx = StageContext(stage=spec, params=spec.params(), epoch=EpochInfo(epoch.id, -1, epoch.role, 0, wf.dir),
-                       slots={"request": ReadRequest(path, name, epoch.role, inp.kind, digest)},
+    ctx = StageContext(stage=spec, params=spec.params(), epoch=EpochInfo(epoch.id, -1, epoch.role, 0, plan.base_dir),
+                       slots={"request": ReadRequest(path, inp.name, epoch.role, inp.kind, digest)},
                        rng=np.random.default_rng(0), seed=0, log=logging.getLogger(f"gdt.stage.{spec.name}"))
     try:
         ds = spec.run(ctx)["dataset"]
@@ -172,12 +234,12 @@ def _read_input(wf: LoadedWorkflow, registry: Registry, epoch: EpochSpec, i_inde
     if not isinstance(ds, Dataset):
         raise StageError(f"{where}: reader {spec.name!r} returned {type(ds).__name__}, not a Dataset")
     _check_dataset(ds, where)
-    units = inp.units or wf.model.units
-    scale = UNITS[units] / UNITS[wf.model.units]
+    scale = UNITS[inp.units] / UNITS[plan.units]
     vps = None if inp.viewpoints is None else np.asarray(inp.viewpoints, dtype=np.float64) * scale
     return dataclasses.replace(
-        ds, name=name, role=epoch.role, points=ds.points * scale if scale != 1.0 else ds.points, viewpoints=vps,
-        source=SourceInfo(path=_rel(path, wf.dir), sha256=digest, units=units, scale=scale, reader=spec.name))
+        ds, name=inp.name, role=epoch.role, points=ds.points * scale if scale != 1.0 else ds.points, viewpoints=vps,
+        source=SourceInfo(path=_rel(path, plan.base_dir), sha256=digest, units=inp.units, scale=scale,
+                          reader=spec.name))
 
 
 def _identifier(stem: str) -> str:
@@ -215,13 +277,20 @@ def run_workflow(path: str | Path, *, registry: Registry | None = None, twin: st
                  overwrite: bool = False, reporter: Reporter | None = None) -> RunResult:
     """Run a workflow file end to end and write its twin; return where it went."""
     registry = registry or load_registry()
-    reporter = reporter or Reporter()
     wf = load_workflow(path, registry)
     target = Path(twin).resolve() if twin is not None else wf.twin_path()
+    return execute_plan(plan_from_workflow(wf, registry), registry, target, overwrite=overwrite, reporter=reporter)
+
+
+def execute_plan(plan: RunPlan, registry: Registry, target: Path, *, overwrite: bool = False,
+                 reporter: Reporter | None = None) -> RunResult:
+    """Run a plan into the twin at ``target``, holding the twin's writer lock."""
+    reporter = reporter or Reporter()
+    target = Path(target).resolve()
     target.parent.mkdir(parents=True, exist_ok=True)
     try:
         with writer_lock(target):
-            return _run_locked(wf, registry, reporter, target, overwrite)
+            return _run_locked(plan, registry, reporter, target, overwrite)
     except TwinStoreError as exc:
         raise GdtError(str(exc)) from exc
 
@@ -245,9 +314,8 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _run_locked(wf: LoadedWorkflow, registry: Registry, reporter: Reporter, target: Path,
+def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: Path,
                 overwrite: bool) -> RunResult:
-    model = wf.model
     _remove_stale_staging(target)
     if target.exists() and not overwrite:
         raise GdtError(f"twin {target} already exists; pass --overwrite to replace it (the old twin stays intact "
@@ -256,45 +324,49 @@ def _run_locked(wf: LoadedWorkflow, registry: Registry, reporter: Reporter, targ
         raise GdtError(f"{target} exists and is not a twin (no twin.usda); refusing to replace it")
 
     digests: dict[tuple[int, int], str] = {}
-    for e_index, epoch in enumerate(model.epochs):
+    for epoch in plan.epochs:
         for i_index, inp in enumerate(epoch.inputs):
-            p = wf.input_path(inp)
             try:
-                digests[(e_index, i_index)] = sha256_file(p)
+                digests[(epoch.index, i_index)] = sha256_file(inp.path)
             except OSError as exc:
-                raise InputError(f"epoch {epoch.id}, input {i_index} ({p}): cannot read: {exc.strerror}") from exc
+                raise InputError(f"epoch {epoch.id}, input {i_index} ({inp.path}): cannot read: "
+                                 f"{exc.strerror}") from exc
 
     staging = target.parent / f".{target.name}.partial-{os.getpid()}"
     if staging.exists():
         shutil.rmtree(staging)
     packages = package_versions()
-    lock: dict[str, Any] = {"format": 1, "workflow": {"path": wf.path.name, "sha256": wf.sha256, "name": model.name},
-                            "seed": model.seed, "packages": packages, "epochs": []}
+    workflow_record = {"path": _rel(plan.workflow_path, plan.base_dir), "sha256": plan.workflow_sha256,
+                       "name": plan.name, "dir_from_twin": os.path.relpath(plan.base_dir, target),
+                       "units": plan.units, "up_axis": plan.up_axis}
+    lock: dict[str, Any] = {"format": 1, "workflow": workflow_record, "seed": plan.seed, "packages": packages,
+                            "epochs": []}
     result = RunResult(twin=target, lock=target / LOCK_NAME)
     try:
-        store = TwinStore.create(staging, meters_per_unit=UNITS[model.units], up_axis=model.up_axis, lock=False)
+        store = TwinStore.create(staging, meters_per_unit=UNITS[plan.units], up_axis=plan.up_axis, lock=False)
         composite: Composite | None = None
         upstream_epoch_key: str | None = None
-        for e_index, epoch in enumerate(model.epochs):
+        for epoch in plan.epochs:
             t_epoch = time.perf_counter()
             started = datetime.now(UTC).isoformat(timespec="seconds")
-            reporter.epoch_started(epoch, e_index, len(model.epochs))
-            info = EpochInfo(id=epoch.id, index=e_index, role=epoch.role, seed=model.seed, workflow_dir=wf.dir)
-            input_digests = [digests[(e_index, i)] for i in range(len(epoch.inputs))]
-            recent = [_read_input(wf, registry, epoch, i, digests[(e_index, i)]) for i in range(len(epoch.inputs))]
+            reporter.epoch_started(epoch, epoch.index, len(plan.epochs))
+            info = EpochInfo(id=epoch.id, index=epoch.index, role=epoch.role, seed=plan.seed,
+                             workflow_dir=plan.base_dir)
+            input_digests = [digests[(epoch.index, i)] for i in range(len(epoch.inputs))]
+            recent = [_read_input(plan, registry, epoch, i, input_digests[i]) for i in range(len(epoch.inputs))]
             slots: dict[str, Any] = {"recent": recent, "epoch": info}
             if composite is not None:
                 slots["reference"] = composite
             upstream = [upstream_epoch_key] if upstream_epoch_key else []
             stage_records = []
-            for s_index, entry in iter_chain(wf, epoch):
-                spec = registry.get(entry.uses)
-                params = resolved_params(entry)
-                rng, seed = _stage_rng(model.seed, e_index, s_index)
+            for stage in epoch.stages:
+                spec, s_index = stage.spec, stage.index
+                params = json.loads(stage.params.model_dump_json())
+                rng, seed = _stage_rng(plan.seed, epoch.index, s_index)
                 key = cache_key(spec, params, input_digests, upstream)
                 where = f"epoch {epoch.id}, stage {s_index} {spec.name!r} ({spec.plugin} {spec.plugin_version})"
                 visible = {k: v for k, v in slots.items() if k in spec.requires or k in spec.optional or k == "epoch"}
-                ctx = StageContext(stage=spec, params=entry.with_, slots=visible, epoch=info, rng=rng, seed=seed,
+                ctx = StageContext(stage=spec, params=stage.params, slots=visible, epoch=info, rng=rng, seed=seed,
                                    log=logging.getLogger(f"gdt.stage.{spec.name}"), progress=reporter.progress)
                 reporter.stage_started(epoch, s_index, spec)
                 t0 = time.perf_counter()
@@ -304,30 +376,31 @@ def _run_locked(wf: LoadedWorkflow, registry: Registry, reporter: Reporter, targ
                 log.info("stage done", extra={"event": {"epoch": epoch.id, "stage": spec.name, "index": s_index,
                                                         "seconds": round(dt, 4), "cache_key": key}})
                 upstream.append(key)
-                stage_records.append({"index": s_index, "id": entry.id, "uses": spec.name, "family": spec.family,
+                stage_records.append({"index": s_index, "id": stage.id, "uses": spec.name, "family": spec.family,
                                       "version": spec.version, "plugin": spec.plugin,
                                       "plugin_version": spec.plugin_version, "entry_point": spec.entry_point,
-                                      "params": params, "seed_spawn_key": [e_index, s_index], "seed": seed,
+                                      "params": params, "seed_spawn_key": [epoch.index, s_index], "seed": seed,
                                       "requires": list(spec.requires), "provides": list(spec.provides),
                                       "cache_key": key, "seconds": round(dt, 4)})
             composite = slots["composite"]
             upstream_epoch_key = upstream[-1] if upstream else None
             inputs = [{"path": ds.source.path, "sha256": ds.source.sha256, "name": ds.name, "kind": ds.kind,
-                       "reader": ds.source.reader, "units": ds.source.units, "scale": ds.source.scale,
-                       "elements": ds.n_elements} for ds in recent if ds.source is not None]
+                       "kind_hint": inp.kind, "reader": ds.source.reader, "units": ds.source.units,
+                       "scale": ds.source.scale, "viewpoints": inp.viewpoints, "elements": ds.n_elements}
+                      for ds, inp in zip(recent, epoch.inputs, strict=True) if ds.source is not None]
             provenance = {
                 "gdt_pipeline": packages.get("gdt-pipeline", "?"),
-                "workflow": {"path": _rel(wf.path, wf.dir), "sha256": wf.sha256, "name": model.name},
-                "epoch": {"id": epoch.id, "index": e_index, "role": epoch.role},
-                "seed": model.seed, "inputs": inputs, "stages": stage_records,
+                "workflow": workflow_record,
+                "epoch": {"id": epoch.id, "index": epoch.index, "role": epoch.role},
+                "seed": plan.seed, "inputs": inputs, "stages": stage_records,
                 "registration": _registration_record(slots.get("registration")),
                 "packages": packages, "python": platform.python_version(),
                 "started": started, "finished": datetime.now(UTC).isoformat(timespec="seconds"),
                 "counts": composite.counts(), "epoch_key": upstream_epoch_key,
             }
             layer = store.write_epoch(epoch.id, composite_to_elements(composite), provenance)
-            summary = EpochSummary(epoch.id, composite.counts(), time.perf_counter() - t_epoch, target / "epochs"
-                                   / Path(layer).name)
+            summary = EpochSummary(epoch.id, composite.counts(), time.perf_counter() - t_epoch,
+                                   target / "epochs" / Path(layer).name)
             result.epochs.append(summary)
             reporter.epoch_finished(summary)
             lock["epochs"].append({"id": epoch.id, "inputs": inputs, "epoch_key": upstream_epoch_key,

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import difflib
 import hashlib
-import json
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -412,9 +411,4 @@ def iter_chain(wf: LoadedWorkflow, epoch: EpochSpec) -> Iterator[tuple[int, Any]
     for index, entry in enumerate(wf.model.stages):
         if entry.applies_to(epoch):
             yield index, entry
-
-
-def resolved_params(entry: Any) -> dict[str, Any]:
-    """A chain entry's validated params, defaults filled in, as plain JSON data."""
-    return json.loads(entry.with_.model_dump_json())
 

@@ -13,6 +13,7 @@ DEB_LIBS := libusb-1.0-0 libgl1 libgomp1
 demo: setup
 	$(BIN)/gdt scene test-scene workflows/data/test_scene --seed 0
 	$(BIN)/gdt run workflows/demo.yaml --overwrite
+	$(BIN)/gdt audit out/demo_twin
 
 test: setup
 	$(BIN)/python -m pytest -q -p no:cacheprovider

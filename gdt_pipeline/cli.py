@@ -246,15 +246,23 @@ def _counts_text(counts: dict[str, int]) -> str:
 @cli.command("log")
 @click.argument("twin", type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
-def log_cmd(twin: Path, as_json: bool) -> None:
+@click.option("--provenance", is_flag=True, help="Print the full provenance of each epoch.")
+def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
     """List the epochs of TWIN: when, from which inputs, and how many elements are unchanged/new/removed."""
     from twin_store import TwinStore
 
     records = TwinStore.open(twin).history()
+    if provenance and not as_json:
+        import yaml
+
+        for r in records:
+            click.echo(f"# epoch {r.id}")
+            click.echo(yaml.safe_dump(r.provenance, sort_keys=False, default_flow_style=None, width=118))
+        return
     if as_json:
         click.echo(json.dumps([{"epoch": r.id, "index": r.index, "role": r.role, "started": r.started,
-                                "finished": r.finished, "inputs": r.inputs, "counts": r.counts} for r in records],
-                              indent=2))
+                                "finished": r.finished, "inputs": r.inputs, "counts": r.counts,
+                                **({"provenance": r.provenance} if provenance else {})} for r in records], indent=2))
         return
     table = Table(title=f"{twin} ({len(records)} epochs)")
     for col in ("epoch", "role", "finished (UTC)", "inputs", "visible elements"):
@@ -328,6 +336,46 @@ def export(twin: Path, epoch: str | None, fmt: str, output: Path) -> None:
     store, epoch = _open_twin(twin, epoch)
     for path in export_twin(store, epoch, output, fmt):
         click.echo(f"wrote {path}")
+
+
+@cli.command()
+@click.argument("twin", type=click.Path(path_type=Path))
+@click.option("--epoch", help="Audit the epochs up to this one (default: all).")
+@click.option("--strict", is_flag=True, help="A plugin version that differs from the recorded one is an error.")
+@click.option("--inputs-dir", type=click.Path(path_type=Path),
+              help="Folder the recorded input paths are relative to, when the data has moved.")
+@click.option("--report", "report_path", type=click.Path(path_type=Path), help="Write a JSON report here.")
+@click.option("--rtol", default=1e-6, show_default=True, help="Relative tolerance for floating-point values.")
+@click.option("--atol", default=1e-9, show_default=True, help="Absolute tolerance for floating-point values.")
+def audit(twin: Path, epoch: str | None, strict: bool, inputs_dir: Path | None, report_path: Path | None,
+          rtol: float, atol: float) -> None:
+    """Re-run TWIN's epochs from their recorded provenance and check they match what is stored (exit 0 only then)."""
+    from .audit import audit_twin
+
+    report = audit_twin(twin, epoch=epoch, strict=strict, base_dir=inputs_dir, rtol=rtol, atol=atol,
+                        registry=_registry())
+    for w in report.warnings:
+        err_console.print(Text.assemble(("error: " if strict else "warning: ", "red" if strict else "yellow"), w))
+    for e in report.epochs:
+        if e.verdict == "match":
+            how = "bit-identical" if e.exact else f"within rtol {rtol:g}, atol {atol:g}"
+            keys = "" if e.cache_keys_match else "; cache keys differ (plugin versions changed)"
+            click.echo(f"{e.epoch}: match ({how}{keys})")
+        else:
+            click.echo(f"{e.epoch}: {e.verdict.upper()}")
+            for line in e.input_problems:
+                click.echo(f"    {line}")
+            for d in e.differences[:10]:
+                click.echo(f"    {d.text()}")
+            if len(e.differences) > 10:
+                click.echo(f"    ... and {len(e.differences) - 10} more")
+    if report_path is not None:
+        report_path.parent.mkdir(parents=True, exist_ok=True)
+        report_path.write_text(json.dumps(report.to_dict(), indent=2, default=str) + "\n", encoding="utf-8")
+        click.echo(f"report written to {report_path}")
+    click.echo("audit passed" if report.ok else "audit FAILED")
+    if not report.ok:
+        raise SystemExit(EXIT_ERROR)
 
 
 def main() -> None:

@@ -1,0 +1,225 @@
+"""Reproducible epoch audits: re-run a twin's epochs from their recorded provenance and prove they match.
+
+For each epoch up to the one audited, the provenance in its layer names the inputs (path relative to the workflow
+folder, sha256, reader, units), the seed, and every stage with its plugin, versions and resolved parameters. The
+audit checks every input still has its recorded sha256, rebuilds the run plan from the record alone (the workflow
+file is not needed and may have changed since), re-runs it into a scratch twin, and compares every element set of
+every epoch with the stored layers: geometry, uncertainty, scores, states, visibility, source epochs.
+
+What is bit-exact: everything, on the same package versions and CPU architecture (the built-in stages use no
+thread-count-dependent reductions: cKDTree queries, Open3D closest-point and ray queries, batched 3x3 linear
+algebra). Across machines or library versions, floating-point results may differ in the last bits, so floats are
+compared with a stated tolerance (``rtol``/``atol``) and the report says whether the match was exact.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+
+from twin_store import ElementSet, TwinStore
+
+from .errors import GdtError, PluginError
+from .plugins import Registry, load_registry
+from .runner import EpochPlan, InputPlan, RunPlan, StagePlan, execute_plan, sha256_file
+
+EXACT_FIELDS = ("faces", "ids", "state", "visible", "source_epoch")
+FLOAT_FIELDS = ("points", "covariance", "half_widths", "rotation", "uncertainty_summary", "score")
+
+
+@dataclass
+class Difference:
+    """Elements of one field of one element set that differ between the stored twin and the re-run."""
+
+    key: str
+    field: str
+    count: int
+    first: list[int] = field(default_factory=list)
+    stored: list[Any] = field(default_factory=list)
+    rerun: list[Any] = field(default_factory=list)
+
+    def text(self) -> str:
+        """One line for people."""
+        if not self.first:
+            return f"{self.key}.{self.field}: {self.stored} stored, {self.rerun} re-run"
+        pairs = ", ".join(f"[{i}] {s} != {r}" for i, s, r in zip(self.first[:3], self.stored, self.rerun,
+                                                                 strict=False))
+        return f"{self.key}.{self.field}: {self.count} element(s) differ, first {pairs}"
+
+
+@dataclass
+class EpochAudit:
+    """The verdict on one epoch."""
+
+    epoch: str
+    verdict: str  # match, differs, inputs changed, not re-run
+    exact: bool = False
+    cache_keys_match: bool | None = None
+    input_problems: list[str] = field(default_factory=list)
+    differences: list[Difference] = field(default_factory=list)
+
+
+@dataclass
+class AuditReport:
+    """The audit of a twin: a verdict per epoch, version warnings and errors."""
+
+    twin: str
+    epochs: list[EpochAudit] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+    strict: bool = False
+
+    @property
+    def ok(self) -> bool:
+        """True only when every audited epoch matches (and, with strict, nothing warned)."""
+        return (not self.errors and bool(self.epochs) and all(e.verdict == "match" for e in self.epochs)
+                and not (self.strict and self.warnings))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Machine-readable report."""
+        return {"twin": self.twin, "ok": self.ok, "strict": self.strict, "warnings": self.warnings,
+                "errors": self.errors, "epochs": [asdict(e) for e in self.epochs]}
+
+
+def _per_element(mask: np.ndarray) -> np.ndarray:
+    return mask.reshape(mask.shape[0], -1).any(axis=1) if mask.ndim > 1 else mask
+
+
+def _short(v: Any) -> Any:
+    arr = np.asarray(v)
+    return arr.round(9).tolist() if arr.dtype.kind == "f" else arr.tolist()
+
+
+def compare_element_sets(stored: list[ElementSet], rerun: list[ElementSet], *, rtol: float, atol: float
+                         ) -> tuple[list[Difference], bool]:
+    """Differences between two composites, per set and field; and whether they are bit-identical."""
+    diffs: list[Difference] = []
+    exact = True
+    a_by, b_by = {e.key: e for e in stored}, {e.key: e for e in rerun}
+    for key in sorted(set(a_by) ^ set(b_by)):
+        diffs.append(Difference(key, "presence", 1, stored=[key in a_by], rerun=[key in b_by]))
+    for key in sorted(set(a_by) & set(b_by)):
+        a, b = a_by[key], b_by[key]
+        if a.kind != b.kind or a.uncertainty_model != b.uncertainty_model:
+            diffs.append(Difference(key, "kind/uncertainty model", 1, stored=[a.kind, a.uncertainty_model],
+                                    rerun=[b.kind, b.uncertainty_model]))
+            continue
+        for name in EXACT_FIELDS + FLOAT_FIELDS:
+            va, vb = getattr(a, name), getattr(b, name)
+            if va is None and vb is None:
+                continue
+            if va is None or vb is None or np.shape(va) != np.shape(vb):
+                diffs.append(Difference(key, name, 1, stored=[None if va is None else list(np.shape(va))],
+                                        rerun=[None if vb is None else list(np.shape(vb))]))
+                continue
+            va, vb = np.asarray(va), np.asarray(vb)
+            if name in EXACT_FIELDS:
+                bad = _per_element(va != vb)
+            else:
+                same_bits = np.array_equal(va, vb, equal_nan=True)
+                exact &= same_bits
+                bad = np.zeros(len(va), bool) if same_bits else _per_element(
+                    ~np.isclose(va, vb, rtol=rtol, atol=atol, equal_nan=True))
+            if bad.any():
+                idx = np.flatnonzero(bad)
+                diffs.append(Difference(key, name, int(idx.size), first=idx[:10].tolist(),
+                                        stored=[_short(va[i]) for i in idx[:3]],
+                                        rerun=[_short(vb[i]) for i in idx[:3]]))
+    return diffs, exact and not diffs
+
+
+def plan_from_twin(store: TwinStore, registry: Registry, upto: str, *, base_dir: Path | None = None
+                   ) -> tuple[RunPlan, list[str], dict[str, list[str]]]:
+    """The run plan recorded in a twin's provenance up to epoch ``upto``; version warnings; input problems."""
+    epochs = store.epochs()
+    warnings: list[str] = []
+    problems: dict[str, list[str]] = {}
+    plans: list[EpochPlan] = []
+    first = store.provenance(epochs[0])
+    wf = first.get("workflow", {})
+    if "dir_from_twin" not in wf and base_dir is None:
+        raise GdtError(f"{store.path}: its provenance does not say where the inputs were (made by an older gdt); "
+                       f"pass --inputs-dir")
+    base = (base_dir or (store.path / wf["dir_from_twin"])).resolve()
+    for eid in epochs[: epochs.index(upto) + 1]:
+        prov = store.provenance(eid)
+        inputs = []
+        for rec in prov.get("inputs", []):
+            path = base / rec["path"]
+            if not path.is_file():
+                problems.setdefault(eid, []).append(f"input {rec['path']} is missing (looked at {path}; recorded "
+                                                    f"sha256 {rec['sha256'][:16]}...)")
+            elif sha256_file(path) != rec["sha256"]:
+                problems.setdefault(eid, []).append(f"input {rec['path']} has changed: sha256 {sha256_file(path)} "
+                                                    f"is not the recorded {rec['sha256']}")
+            inputs.append(InputPlan(path=path, name=rec["name"], kind=rec.get("kind_hint"), reader=rec.get("reader"),
+                                    units=rec.get("units", wf.get("units", "m")), viewpoints=rec.get("viewpoints"),
+                                    sha256=rec["sha256"]))
+        stages = []
+        for rec in prov.get("stages", []):
+            try:
+                spec = registry.get(rec["uses"])
+            except PluginError as exc:
+                raise GdtError(f"epoch {eid} was made with stage {rec['uses']!r} ({rec.get('plugin')} "
+                               f"{rec.get('plugin_version')}), which is not installed: {exc}") from exc
+            if (spec.plugin_version, spec.version) != (rec.get("plugin_version"), rec.get("version")):
+                warnings.append(f"epoch {eid}: stage {spec.name!r} was made with {rec.get('plugin')} "
+                                f"{rec.get('plugin_version')} (stage {rec.get('version')}); installed is {spec.plugin} "
+                                f"{spec.plugin_version} (stage {spec.version})")
+            try:
+                params = spec.params.model_validate(rec.get("params", {}))
+            except ValidationError as exc:
+                raise GdtError(f"epoch {eid}: the recorded params of stage {spec.name!r} no longer validate against "
+                               f"the installed version: {exc.errors(include_url=False)}") from exc
+            stages.append(StagePlan(index=rec["index"], spec=spec, params=params, id=rec.get("id")))
+        e = prov["epoch"]
+        plans.append(EpochPlan(id=eid, index=e["index"], role=e["role"], inputs=inputs, stages=stages))
+    plan = RunPlan(name=wf.get("name", "audit"), workflow_path=base / wf.get("path", "workflow.yaml"),
+                   workflow_sha256=wf.get("sha256", ""), base_dir=base, seed=int(first.get("seed", 0)),
+                   units=wf.get("units", "m"), up_axis=wf.get("up_axis", "Z"), epochs=plans)
+    return plan, warnings, problems
+
+
+def audit_twin(twin: str | Path, *, epoch: str | None = None, strict: bool = False, base_dir: Path | None = None,
+               rtol: float = 1e-6, atol: float = 1e-9, registry: Registry | None = None) -> AuditReport:
+    """Re-run a twin's epochs (up to ``epoch``, default all) from their provenance and compare with what is stored."""
+    registry = registry or load_registry()
+    store = TwinStore.open(twin)
+    epochs = store.epochs()
+    if not epochs:
+        raise GdtError(f"twin {twin} has no epochs to audit")
+    upto = epoch or epochs[-1]
+    if upto not in epochs:
+        raise GdtError(f"twin {twin} has no epoch {upto!r} (epochs: {', '.join(epochs)})")
+    report = AuditReport(twin=str(Path(twin).resolve()), strict=strict)
+    plan, report.warnings, problems = plan_from_twin(store, registry, upto, base_dir=base_dir)
+    audited = epochs[: epochs.index(upto) + 1]
+    broken = next((i for i, e in enumerate(audited) if e in problems), None)
+    runnable = audited if broken is None else audited[:broken]
+    rerun_store = None
+    with tempfile.TemporaryDirectory(prefix="gdt-audit-") as scratch:
+        if runnable:
+            sub = RunPlan(**{**plan.__dict__, "epochs": plan.epochs[: len(runnable)]})
+            rerun = execute_plan(sub, registry, Path(scratch) / "twin")
+            rerun_store = TwinStore.open(rerun.twin)
+        for i, eid in enumerate(audited):
+            if eid in problems:
+                report.epochs.append(EpochAudit(eid, "inputs changed", input_problems=problems[eid]))
+                continue
+            if broken is not None and i > broken:
+                report.epochs.append(EpochAudit(eid, "not re-run", input_problems=[
+                    f"builds on epoch {audited[broken]}, whose inputs changed"]))
+                continue
+            assert rerun_store is not None
+            diffs, exact = compare_element_sets(store.read_epoch(eid), rerun_store.read_epoch(eid), rtol=rtol,
+                                                atol=atol)
+            keys_a = [s["cache_key"] for s in store.provenance(eid).get("stages", [])]
+            keys_b = [s["cache_key"] for s in rerun_store.provenance(eid).get("stages", [])]
+            report.epochs.append(EpochAudit(eid, "match" if not diffs else "differs", exact=exact,
+                                            cache_keys_match=keys_a == keys_b, differences=diffs))
+    return report

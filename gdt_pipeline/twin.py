@@ -6,7 +6,7 @@ import numpy as np
 
 from twin_store import ElementSet
 
-from .types import BoxUncertainty, Composite, GaussianUncertainty
+from .types import BoxUncertainty, Composite, GaussianUncertainty, MixtureUncertainty
 
 _TRIU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))  # xx xy xz yy yz zz
 
@@ -28,6 +28,10 @@ def composite_to_elements(composite: Composite) -> list[ElementSet]:
         summary = np.full(n, np.nan)
         if isinstance(unc, GaussianUncertainty):
             model, cov = "gaussian", covariance6(unc.covariance(n))
+            summary = np.asarray(unc.summary(n))
+        elif isinstance(unc, MixtureUncertainty):
+            # The twin keeps the mixture's moments (covariance about its mean); the components stay in the run.
+            model, cov = "mixture", covariance6(unc.covariance(n))
             summary = np.asarray(unc.summary(n))
         elif isinstance(unc, BoxUncertainty):
             model = "box"

@@ -49,6 +49,59 @@ def _broadcast_rows(arr: np.ndarray, n: int, what: str) -> None:
         raise ValueError(f"{what}: {arr.shape[0]} rows for {n} elements (give 1 to broadcast, or one per element)")
 
 
+CHI2_3_99 = 11.344866730144373  # chi-square quantile, 3 degrees of freedom, p = 0.99 (scipy.stats.chi2.ppf)
+BOX_99 = 0.99 ** (1.0 / 3.0)  # a centred box scaled by this holds 99 % of a uniform box's mass
+
+
+@dataclass(frozen=True)
+class Region99:
+    """The 99 % probability region of each element's distribution, as offsets from the element's position.
+
+    ``kind`` is "ellipsoid" (``half_axes`` are the radii along the columns of ``axes``), "box" (``half_axes`` are
+    half-widths along ``axes``) or "sphere" (``half_axes[:, 0]`` is the radius; a conservative region holding at
+    least 99 %, used for mixtures).
+    """
+
+    kind: Literal["ellipsoid", "box", "sphere"]
+    center: np.ndarray
+    half_axes: np.ndarray
+    axes: np.ndarray
+
+    def contains(self, offsets: np.ndarray) -> np.ndarray:
+        """Whether each ``(n,3)`` offset (point minus element position) lies in its element's region."""
+        d = np.asarray(offsets, dtype=np.float64) - self.center
+        if self.kind == "sphere":
+            return np.linalg.norm(d, axis=-1) <= self.half_axes[..., 0]
+        local = np.einsum("nji,nj->ni", self.axes, d)
+        scaled = np.divide(local, self.half_axes, out=np.full_like(local, np.inf), where=self.half_axes > 0)
+        scaled[(self.half_axes == 0) & (np.abs(local) < 1e-15)] = 0.0
+        if self.kind == "box":
+            return np.all(np.abs(scaled) <= 1.0, axis=-1)
+        return np.einsum("ni,ni->n", scaled, scaled) <= 1.0
+
+    def bounding_radius(self) -> np.ndarray:
+        """Radius of a sphere around the element position that holds the whole region (for KD-tree searches)."""
+        c = np.linalg.norm(self.center, axis=-1)
+        if self.kind == "sphere":
+            return c + self.half_axes[..., 0]
+        if self.kind == "box":
+            return c + np.linalg.norm(self.half_axes, axis=-1)
+        return c + self.half_axes.max(axis=-1)
+
+
+def _psd_factor(cov: np.ndarray) -> np.ndarray:
+    """A factor L with L Lᵀ = Σ for symmetric positive semi-definite Σ (eigen-based: works when Σ is singular)."""
+    w, v = np.linalg.eigh(cov)
+    return v * np.sqrt(np.clip(w, 0.0, None))[..., None, :]
+
+
+def _gauss_pdf(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    chol = np.linalg.cholesky(cov)
+    y = np.linalg.solve(chol, d[..., None])[..., 0]
+    logdet = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(axis=-1)
+    return np.exp(-0.5 * np.einsum("...i,...i->...", y, y) - 0.5 * logdet - 1.5 * np.log(2 * np.pi))
+
+
 @dataclass(frozen=True)
 class GaussianUncertainty:
     """Multivariate normal positional uncertainty per element: full 3x3 covariances ``(N,3,3)`` or one ``(1,3,3)``."""
@@ -82,6 +135,21 @@ class GaussianUncertainty:
     def take(self, idx: np.ndarray) -> GaussianUncertainty:
         """The uncertainty of the elements ``idx`` (a shared covariance stays shared)."""
         return self if self.cov.shape[0] == 1 else GaussianUncertainty(self.cov[idx])
+
+    def sample(self, n: int, rng: np.random.Generator, k: int = 1) -> np.ndarray:
+        """``k`` random offsets per element, ``(n,k,3)``."""
+        factor = np.broadcast_to(_psd_factor(self.cov), (n, 3, 3))
+        return np.einsum("nij,nkj->nki", factor, rng.standard_normal((n, k, 3)))
+
+    def pdf(self, offsets: np.ndarray) -> np.ndarray:
+        """Density of each element's distribution at an ``(n,3)`` offset from its position."""
+        d = np.asarray(offsets, dtype=np.float64)
+        return _gauss_pdf(d, self.covariance(len(d)))
+
+    def region99(self, n: int) -> Region99:
+        """The 99 % ellipsoid of each element (radii from the chi-square quantile with 3 degrees of freedom)."""
+        w, v = np.linalg.eigh(self.covariance(n))
+        return Region99("ellipsoid", np.zeros((n, 3)), np.sqrt(CHI2_3_99 * np.clip(w, 0.0, None)), v)
 
 
 @dataclass(frozen=True)
@@ -129,8 +197,104 @@ class BoxUncertainty:
         rot = None if self.rotation is None else (self.rotation if self.rotation.shape[0] == 1 else self.rotation[idx])
         return BoxUncertainty(hw, rot)
 
+    def axes(self, n: int) -> np.ndarray:
+        """Box axes (columns) per element, ``(n,3,3)``."""
+        return np.broadcast_to(np.eye(3) if self.rotation is None else self.rotation, (n, 3, 3))
 
-Uncertainty = GaussianUncertainty | BoxUncertainty
+    def sample(self, n: int, rng: np.random.Generator, k: int = 1) -> np.ndarray:
+        """``k`` random offsets per element, ``(n,k,3)``, uniform in each box."""
+        _broadcast_rows(self.half_widths, n, "box half-widths")
+        local = rng.uniform(-1.0, 1.0, (n, k, 3)) * np.broadcast_to(self.half_widths, (n, 3))[:, None, :]
+        return np.einsum("nij,nkj->nki", self.axes(n), local)
+
+    def pdf(self, offsets: np.ndarray) -> np.ndarray:
+        """Density at an ``(n,3)`` offset: 1/volume inside the box, 0 outside."""
+        d = np.asarray(offsets, dtype=np.float64)
+        n = len(d)
+        hw = np.broadcast_to(self.half_widths, (n, 3))
+        local = np.einsum("nji,nj->ni", self.axes(n), d)
+        inside = np.all(np.abs(local) <= hw, axis=1)
+        return np.where(inside, 1.0 / np.prod(2.0 * hw, axis=1), 0.0)
+
+    def region99(self, n: int) -> Region99:
+        """The centred box holding 99 % of the mass (half-widths scaled by 0.99^(1/3))."""
+        hw = np.broadcast_to(self.half_widths, (n, 3)) * BOX_99
+        return Region99("box", np.zeros((n, 3)), hw, np.array(self.axes(n)))
+
+
+@dataclass(frozen=True)
+class MixtureUncertainty:
+    """A Gaussian mixture per element: ``weights (N,K)``, component ``means (N,K,3)`` as offsets from the element's
+    position, and component ``covs (N,K,3,3)``. The paper merges the neighbours inside a query's 99 % region into
+    such a mixture (point-to-point correspondences)."""
+
+    weights: np.ndarray
+    means: np.ndarray
+    covs: np.ndarray
+    family: Literal["mixture"] = field(default="mixture", init=False)
+
+    def __post_init__(self) -> None:
+        w = frozen_array(self.weights, np.float64, (None, None), "mixture weights")
+        n, k = w.shape
+        object.__setattr__(self, "weights", w)
+        object.__setattr__(self, "means", frozen_array(self.means, np.float64, (n, k, 3), "mixture means"))
+        object.__setattr__(self, "covs", frozen_array(self.covs, np.float64, (n, k, 3, 3), "mixture covariances"))
+        if np.any(w < 0) or not np.allclose(w.sum(axis=1), 1.0, atol=1e-9):
+            raise ValueError("mixture weights must be >= 0 and sum to 1 per element")
+
+    def mean_offset(self, n: int) -> np.ndarray:
+        """Mean of each mixture relative to the element position, ``(n,3)``."""
+        _broadcast_rows(self.weights, n, "mixture weights")
+        return np.broadcast_to(np.einsum("nk,nki->ni", self.weights, self.means), (n, 3))
+
+    def covariance(self, n: int) -> np.ndarray:
+        """Covariance of each mixture about its own mean: Σ w (C + μμᵀ) − m mᵀ."""
+        _broadcast_rows(self.weights, n, "mixture weights")
+        m = np.einsum("nk,nki->ni", self.weights, self.means)
+        second = np.einsum("nk,nkij->nij", self.weights, self.covs + np.einsum("nki,nkj->nkij", self.means, self.means))
+        return np.broadcast_to(second - np.einsum("ni,nj->nij", m, m), (n, 3, 3))
+
+    def summary(self, n: int) -> np.ndarray:
+        """RMS standard deviation per element."""
+        return np.sqrt(np.trace(self.covariance(n), axis1=1, axis2=2) / 3.0)
+
+    def take(self, idx: np.ndarray) -> MixtureUncertainty:
+        """The uncertainty of the elements ``idx``."""
+        if self.weights.shape[0] == 1:
+            return self
+        return MixtureUncertainty(self.weights[idx], self.means[idx], self.covs[idx])
+
+    def _rows(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        _broadcast_rows(self.weights, n, "mixture weights")
+        k = self.weights.shape[1]
+        return (np.broadcast_to(self.weights, (n, k)), np.broadcast_to(self.means, (n, k, 3)),
+                np.broadcast_to(self.covs, (n, k, 3, 3)))
+
+    def sample(self, n: int, rng: np.random.Generator, k: int = 1) -> np.ndarray:
+        """``k`` random offsets per element, ``(n,k,3)``: a component by weight, then a Gaussian draw from it."""
+        w, mu, cov = self._rows(n)
+        cum = np.cumsum(w, axis=1)
+        comp = (rng.random((n, k, 1)) > cum[:, None, :-1]).sum(axis=2)
+        rows = np.arange(n)[:, None]
+        factor = _psd_factor(cov[rows, comp])
+        return mu[rows, comp] + np.einsum("nkij,nkj->nki", factor, rng.standard_normal((n, k, 3)))
+
+    def pdf(self, offsets: np.ndarray) -> np.ndarray:
+        """Density at an ``(n,3)`` offset: Σ w_k N(d; μ_k, C_k)."""
+        d = np.asarray(offsets, dtype=np.float64)
+        w, mu, cov = self._rows(len(d))
+        return np.einsum("nk,nk->n", w, _gauss_pdf(d[:, None, :] - mu, cov))
+
+    def region99(self, n: int) -> Region99:
+        """A sphere around the element holding at least 99 %: it encloses every component's 99 % ellipsoid."""
+        w, mu, cov = self._rows(n)
+        lam = np.linalg.eigvalsh(cov)[..., -1]
+        radius = np.where(w > 0, np.linalg.norm(mu, axis=-1) + np.sqrt(CHI2_3_99 * np.clip(lam, 0, None)), 0).max(1)
+        return Region99("sphere", np.zeros((n, 3)), np.repeat(radius[:, None], 3, axis=1),
+                        np.broadcast_to(np.eye(3), (n, 3, 3)).copy())
+
+
+Uncertainty = GaussianUncertainty | BoxUncertainty | MixtureUncertainty
 
 
 @dataclass(frozen=True)
@@ -205,6 +369,8 @@ class Dataset:
         elif isinstance(unc, BoxUncertainty):
             base = np.eye(3)[None] if unc.rotation is None else unc.rotation
             unc = BoxUncertainty(unc.half_widths, rot[None] @ base)
+        elif isinstance(unc, MixtureUncertainty):
+            unc = MixtureUncertainty(unc.weights, unc.means @ rot.T, rot @ unc.covs @ rot.T)
         vps = None if self.viewpoints is None else self.viewpoints @ rot.T + trans
         return dataclasses.replace(self, points=self.points @ rot.T + trans, uncertainty=unc, viewpoints=vps)
 

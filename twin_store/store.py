@@ -71,7 +71,7 @@ class ElementSet:
             raise TwinStoreError(f"element set key {self.key!r} is not a valid USD identifier")
         if self.kind not in ("mesh", "points"):
             raise TwinStoreError(f"{self.key}: kind must be 'mesh' or 'points', not {self.kind!r}")
-        if self.uncertainty_model not in ("gaussian", "box", "none"):
+        if self.uncertainty_model not in ("gaussian", "box", "mixture", "none"):
             raise TwinStoreError(f"{self.key}: unknown uncertainty model {self.uncertainty_model!r}")
         pts = np.asarray(self.points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -91,8 +91,8 @@ class ElementSet:
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
                 raise TwinStoreError(f"{self.key}: {name} must have shape {shape}, got {np.shape(value)}")
-        if self.uncertainty_model == "gaussian" and self.covariance is None:
-            raise TwinStoreError(f"{self.key}: a gaussian uncertainty needs covariance")
+        if self.uncertainty_model in ("gaussian", "mixture") and self.covariance is None:
+            raise TwinStoreError(f"{self.key}: a {self.uncertainty_model} uncertainty needs covariance")
         if self.uncertainty_model == "box" and self.half_widths is None:
             raise TwinStoreError(f"{self.key}: a box uncertainty needs half_widths")
 

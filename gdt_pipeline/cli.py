@@ -339,6 +339,38 @@ def export(twin: Path, epoch: str | None, fmt: str, output: Path) -> None:
 
 
 @cli.command()
+@click.option("--reference", type=click.Path(path_type=Path, exists=True, dir_okay=False), required=True,
+              help="Mesh of the known object that was scanned.")
+@click.option("--scan", "scans", type=click.Path(path_type=Path, exists=True, dir_okay=False), multiple=True,
+              required=True, help="A scan of it, registered to the reference (repeat for several).")
+@click.option("--units", type=click.Choice(["m", "dm", "cm", "mm", "um", "in", "ft"]), default="m",
+              show_default=True, help="Units of the files (and of the profile written).")
+@click.option("--max-distance", type=float, help="Ignore points farther than this from the reference (strays).")
+@click.option("--name", default="calibrated", show_default=True, help="Name of the sensor profile.")
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="Profile YAML to write.")
+def calibrate(reference: Path, scans: tuple[Path, ...], units: str, max_distance: float | None, name: str,
+              output: Path) -> None:
+    """Estimate a scanner's noise from scans of a known object and write a reusable sensor profile."""
+    from .runner import read_dataset
+    from .sensors import SensorProfile, file_digest, save_profile
+    from .sensors import calibrate as run_calibration
+
+    registry = _registry()
+    ref = read_dataset(reference, registry, name="reference", role="as-designed", kind="mesh")
+    data = [read_dataset(p, registry, name=f"scan{i}", kind="points") for i, p in enumerate(scans)]
+    cal = run_calibration(ref, data, max_distance=max_distance)
+    record = {**cal.record(), "reference": {"path": str(reference), "sha256": file_digest(reference)},
+              "scans": [{"path": str(p), "sha256": file_digest(p)} for p in scans],
+              "method": "1.4826 * median absolute deviation of signed point-to-mesh distances (Open3D)"}
+    profile = SensorProfile(name=name, units=units, range_sigma=[cal.sigma, 0.0, 0.0], lateral_sigma=[cal.sigma, 0.0],
+                            description=f"Isotropic noise calibrated against {reference.name} from {len(scans)} "
+                                        f"scan(s) ({cal.n_used} points).", calibration=record)
+    save_profile(profile, output)
+    click.echo(f"sigma {cal.sigma:.6g} {units} (bias {cal.bias:+.3g}, median |d| {cal.median_abs:.3g}, p95 "
+               f"{cal.p95_abs:.3g}, {cal.n_used} of {cal.n_points} points); profile written to {output}")
+
+
+@cli.command()
 @click.argument("twin", type=click.Path(path_type=Path))
 @click.option("--epoch", help="Audit the epochs up to this one (default: all).")
 @click.option("--strict", is_flag=True, help="A plugin version that differs from the recorded one is an error.")

@@ -211,19 +211,19 @@ def plan_from_workflow(wf: LoadedWorkflow, registry: Registry) -> RunPlan:
                    seed=model.seed, units=model.units, up_axis=model.up_axis, epochs=epochs)
 
 
-def _read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int, digest: str) -> Dataset:
-    inp = epoch.inputs[i_index]
-    path = inp.path
-    where = f"epoch {epoch.id}, input {i_index} ({path})"
-    if inp.reader:
-        spec = registry.get(inp.reader, family="reader")
+def read_dataset(path: Path, registry: Registry, *, name: str, role: str = "as-is", kind: str | None = None,
+                 reader: str | None = None, digest: str = "", where: str | None = None) -> Dataset:
+    """Read one file with the reader its extension (or ``reader``) selects, and check the geometry is usable."""
+    where = where or str(path)
+    if reader:
+        spec = registry.get(reader, family="reader")
     else:
-        cands = registry.readers_for(path, inp.kind)
+        cands = registry.readers_for(path, kind)
         if not cands:
             raise InputError(f"{where}: no installed reader accepts this file")
         spec = cands[0]
-    ctx = StageContext(stage=spec, params=spec.params(), epoch=EpochInfo(epoch.id, -1, epoch.role, 0, plan.base_dir),
-                       slots={"request": ReadRequest(path, inp.name, epoch.role, inp.kind, digest)},
+    ctx = StageContext(stage=spec, params=spec.params(), epoch=EpochInfo("", -1, role, 0, path.parent),  # type: ignore[arg-type]
+                       slots={"request": ReadRequest(path, name, role, kind, digest)},
                        rng=np.random.default_rng(0), seed=0, log=logging.getLogger(f"gdt.stage.{spec.name}"))
     try:
         ds = spec.run(ctx)["dataset"]
@@ -234,12 +234,19 @@ def _read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: in
     if not isinstance(ds, Dataset):
         raise StageError(f"{where}: reader {spec.name!r} returned {type(ds).__name__}, not a Dataset")
     _check_dataset(ds, where)
+    return dataclasses.replace(ds, source=SourceInfo(path=str(path), sha256=digest, reader=spec.name))
+
+
+def _read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int, digest: str) -> Dataset:
+    inp = epoch.inputs[i_index]
+    ds = read_dataset(inp.path, registry, name=inp.name, role=epoch.role, kind=inp.kind, reader=inp.reader,
+                      digest=digest, where=f"epoch {epoch.id}, input {i_index} ({inp.path})")
     scale = UNITS[inp.units] / UNITS[plan.units]
     vps = None if inp.viewpoints is None else np.asarray(inp.viewpoints, dtype=np.float64) * scale
     return dataclasses.replace(
-        ds, name=inp.name, role=epoch.role, points=ds.points * scale if scale != 1.0 else ds.points, viewpoints=vps,
-        source=SourceInfo(path=_rel(path, plan.base_dir), sha256=digest, units=inp.units, scale=scale,
-                          reader=spec.name))
+        ds, points=ds.points * scale if scale != 1.0 else ds.points, viewpoints=vps,
+        source=SourceInfo(path=_rel(inp.path, plan.base_dir), sha256=digest, units=inp.units, scale=scale,
+                          reader=ds.source.reader if ds.source else ""))
 
 
 def _identifier(stem: str) -> str:
@@ -351,7 +358,7 @@ def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: P
             started = datetime.now(UTC).isoformat(timespec="seconds")
             reporter.epoch_started(epoch, epoch.index, len(plan.epochs))
             info = EpochInfo(id=epoch.id, index=epoch.index, role=epoch.role, seed=plan.seed,
-                             workflow_dir=plan.base_dir)
+                             workflow_dir=plan.base_dir, units=plan.units)
             input_digests = [digests[(epoch.index, i)] for i in range(len(epoch.inputs))]
             recent = [_read_input(plan, registry, epoch, i, input_digests[i]) for i in range(len(epoch.inputs))]
             slots: dict[str, Any] = {"recent": recent, "epoch": info}

@@ -543,3 +543,4 @@ class EpochInfo:
     role: Role
     seed: int
     workflow_dir: Path
+    units: str = "m"

@@ -152,7 +152,8 @@ def test_voxel_mle_in_a_workflow(tmp_path: Path, registry) -> None:
     old = "  - uses: constant\n    role: as-is\n    with: {model: isotropic, sigma: 0.004}\n"
     text = (REPO / "workflows" / "demo.yaml").read_text()
     assert old in text
-    text = text.replace(old, "  - uses: voxel_mle\n    role: as-is\n    with: {voxel: 0.05, overlap: 0.5, min_points: 10}\n")
+    new = "  - uses: voxel_mle\n    role: as-is\n    with: {voxel: 0.05, overlap: 0.5, min_points: 10}\n"
+    text = text.replace(old, new)
     (tmp_path / "demo.yaml").write_text(text)
     shutil.rmtree(tmp_path / "twin", ignore_errors=True)
     twin = run_workflow(tmp_path / "demo.yaml", registry=registry, twin=tmp_path / "twin").twin

@@ -20,6 +20,7 @@ test: setup
 
 bench: setup
 	$(BIN)/python bench/engine_throughput.py
+	$(BIN)/python bench/voxel_mle.py
 
 lint: setup
 	$(BIN)/ruff check .

@@ -29,7 +29,7 @@ from .plugins import Registry, load_registry
 from .runner import EpochPlan, InputPlan, RunPlan, StagePlan, execute_plan, sha256_file
 
 EXACT_FIELDS = ("faces", "ids", "state", "visible", "source_epoch")
-FLOAT_FIELDS = ("points", "covariance", "half_widths", "rotation", "uncertainty_summary", "score")
+FLOAT_FIELDS = ("points", "covariance", "half_widths", "rotation", "uncertainty_summary", "score", "p_value")
 
 
 @dataclass

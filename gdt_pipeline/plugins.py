@@ -76,6 +76,11 @@ class StageContext:
     seed: int
     log: logging.Logger
     progress: Progress = field(default_factory=NullProgress)
+    notes: dict[str, Any] = field(default_factory=dict)
+
+    def report(self, **values: Any) -> None:
+        """Record figures worth keeping (a tolerance reached, a rate achieved): they go into the epoch's provenance."""
+        self.notes.update(values)
 
     def __getitem__(self, name: str) -> Any:
         """The value of a required slot."""

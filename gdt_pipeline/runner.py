@@ -388,7 +388,8 @@ def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: P
                                       "plugin_version": spec.plugin_version, "entry_point": spec.entry_point,
                                       "params": params, "seed_spawn_key": [epoch.index, s_index], "seed": seed,
                                       "requires": list(spec.requires), "provides": list(spec.provides),
-                                      "cache_key": key, "seconds": round(dt, 4)})
+                                      "cache_key": key, "seconds": round(dt, 4),
+                                      "report": json.loads(json.dumps(ctx.notes, default=_plain))})
             composite = slots["composite"]
             upstream_epoch_key = upstream[-1] if upstream else None
             inputs = [{"path": ds.source.path, "sha256": ds.source.sha256, "name": ds.name, "kind": ds.kind,
@@ -420,6 +421,15 @@ def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: P
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return result
+
+
+def _plain(value: Any) -> Any:
+    """JSON form of numpy scalars and arrays in stage reports."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
 
 
 def _registration_record(reg: Registration | None) -> dict[str, Any] | None:

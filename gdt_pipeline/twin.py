@@ -41,5 +41,6 @@ def composite_to_elements(composite: Composite) -> list[ElementSet]:
         out.append(ElementSet(key=it.key, kind=ds.kind, points=ds.points, faces=ds.faces, uncertainty_model=model,
                               covariance=cov, half_widths=hw, rotation=rot, uncertainty_summary=summary,
                               state=it.state, score=it.score.astype(np.float32), source_epoch=it.source_epoch,
-                              visible=it.visible))
+                              visible=it.visible,
+                              p_value=None if it.p_value is None else it.p_value.astype(np.float32)))
     return out

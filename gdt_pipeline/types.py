@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -448,6 +449,10 @@ class Scores:
     measure: str
     p_value: np.ndarray | None = None
     tolerance: float | None = None  # ε_T of a numerical integration, when the measure used one
+    # simulate(rng, n): scores of n unchanged pairs drawn from this dataset's actual pairs' uncertainty models (the
+    # null distribution a calibrated threshold needs); None when the measure cannot simulate.
+    simulate: Callable[[np.random.Generator, int], np.ndarray] | None = field(default=None, compare=False,
+                                                                               repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "score", frozen_array(self.score, np.float64, (None,), "score"))
@@ -463,12 +468,16 @@ class Change:
     score: np.ndarray
     mask: np.ndarray
     state: np.ndarray
+    p_value: np.ndarray | None = None
+    threshold: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "score", frozen_array(self.score, np.float64, (None,), "change score"))
         n = len(self.score)
         object.__setattr__(self, "mask", frozen_array(self.mask, np.bool_, (n,), "change mask"))
         object.__setattr__(self, "state", frozen_array(self.state, np.uint8, (n,), "change state"))
+        if self.p_value is not None:
+            object.__setattr__(self, "p_value", frozen_array(self.p_value, np.float64, (n,), "change p-value"))
 
 
 @dataclass(frozen=True)
@@ -503,9 +512,12 @@ class CompositeItem:
     score: np.ndarray
     source_epoch: np.ndarray
     visible: np.ndarray
+    p_value: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = self.dataset.n_elements
+        if self.p_value is not None:
+            object.__setattr__(self, "p_value", frozen_array(self.p_value, np.float64, (n,), f"{self.key}: p-value"))
         object.__setattr__(self, "state", frozen_array(self.state, np.uint8, (n,), f"{self.key}: state"))
         object.__setattr__(self, "score", frozen_array(self.score, np.float64, (n,), f"{self.key}: score"))
         object.__setattr__(self, "source_epoch", frozen_array(self.source_epoch, np.int32, (n,), f"{self.key}: source"))

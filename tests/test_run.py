@@ -172,11 +172,12 @@ def test_existing_twin_needs_overwrite(existing_twin) -> None:
 
 def test_stage_error_names_epoch_and_stage(existing_twin) -> None:
     scene, wf, digest = existing_twin
-    wf.write_text(wf.read_text().replace("with: {model: isotropic, sigma: 0.001}",
-                                         "with: {model: box, half_widths: [0.001, 0.001, 0.001]}"))
+    text = wf.read_text().replace("with: {model: isotropic, sigma: 0.001}",
+                                  "with: {model: box, half_widths: [0.001, 0.001, 0.001]}")
+    wf.write_text(text.replace("uses: bhattacharyya", "uses: hotelling"))
     res = run_gdt("run", str(wf), "--overwrite")
-    _assert_failed_cleanly(res, scene, digest, "epoch E1, stage 4 'bhattacharyya' (gdt-pipeline", "'box'",
-                           "non_gaussian: moment_match")
+    _assert_failed_cleanly(res, scene, digest, "epoch E1, stage 4 'hotelling' (gdt-pipeline", "'box'",
+                           "holds only for normal distributions")
     debug = run_gdt("--debug", "run", str(wf), "--overwrite")
     assert debug.returncode == 1 and "Traceback" in debug.stderr
 

@@ -65,6 +65,7 @@ class ElementSet:
     visible: np.ndarray
     ids: np.ndarray | None = None
     display_color: np.ndarray | None = None  # (E,3) in 0..1; default: baked from the change state
+    p_value: np.ndarray | None = None  # (E,) p-value of the change test, where the measure has one
 
     def __post_init__(self) -> None:
         if not Tf.IsValidIdentifier(self.key):
@@ -86,7 +87,7 @@ class ElementSet:
             n = len(pts)
         shapes = {"uncertainty_summary": (n,), "state": (n,), "score": (n,), "source_epoch": (n,), "visible": (n,),
                   "covariance": (n, 6), "half_widths": (n, 3), "rotation": (n, 3, 3), "ids": (n,),
-                  "display_color": (n, 3)}
+                  "display_color": (n, 3), "p_value": (n,)}
         for name, shape in shapes.items():
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
@@ -198,6 +199,9 @@ def _values(es: ElementSet) -> dict[str, tuple[Any, Any, np.ndarray, int, str | 
     if es.half_widths is not None:
         out["gdt:halfWidths"] = (Sdf.ValueTypeNames.Float3Array, interp, np.asarray(es.half_widths, np.float32), 1,
                                  "GUM rectangular error limits: box half-widths per element (twin units).")
+    if es.p_value is not None:
+        out["gdt:pValue"] = (Sdf.ValueTypeNames.FloatArray, interp, np.asarray(es.p_value, dtype=np.float32), 1,
+                             "p-value of the change test per element (NaN where not tested).")
     if es.rotation is not None:
         out["gdt:rotation"] = (Sdf.ValueTypeNames.FloatArray, interp,
                                np.asarray(es.rotation, dtype=np.float32).reshape(-1), 9,
@@ -472,7 +476,8 @@ class TwinStore:
             covariance=pv("gdt:covariance", np.float32, (-1, 6)), half_widths=pv("gdt:halfWidths", np.float32),
             rotation=pv("gdt:rotation", np.float32, (-1, 3, 3)), uncertainty_summary=pv("gdt:uncertainty", np.float32),
             state=pv("gdt:changeState", np.uint8), score=pv("gdt:changeScore", np.float32),
-            source_epoch=pv("gdt:sourceEpoch", np.int32), visible=pv("gdt:visible", bool), ids=ids)
+            source_epoch=pv("gdt:sourceEpoch", np.int32), visible=pv("gdt:visible", bool), ids=ids,
+            p_value=pv("gdt:pValue", np.float32))
 
     def provenance(self, epoch_id: str) -> dict:
         """The provenance recorded with an epoch."""

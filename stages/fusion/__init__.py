@@ -41,14 +41,16 @@ def _keep_unchanged(ctx: StageContext) -> dict[str, Any]:
         ch = changes.get(qi)
         if ch is None and reference.items:
             raise ValueError(f"dataset {ds.name!r} has no change result although a reference exists")
+        p_value = None
         if ch is None:
             visible = np.ones(n, dtype=bool)
             state = np.full(n, ChangeState.UNCHANGED, dtype=np.uint8)
             score = np.full(n, np.nan)
         else:
-            visible, state, score = ch.mask, ch.state, ch.score
+            visible, state, score, p_value = ch.mask, ch.state, ch.score, ch.p_value
         items.append(CompositeItem(key=f"{epoch.id}_{ds.name}", dataset=ds, epoch=epoch.id, state=state, score=score,
-                                   source_epoch=np.full(n, epoch.index, dtype=np.int32), visible=visible))
+                                   source_epoch=np.full(n, epoch.index, dtype=np.int32), visible=visible,
+                                   p_value=p_value))
     return {"composite": Composite(tuple(items))}
 
 

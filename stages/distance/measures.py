@@ -1,0 +1,217 @@
+"""Vectorised dissimilarity measures between pairs of per-element distributions (paper Sec. 4.2.1).
+
+The Bhattacharyya coefficient BC = ∫ √(p₁ p₂) dx and distance BD = −ln BC for every pair of families:
+
+- Gaussian–Gaussian: closed form (explicit 3x3 algebra, no per-pair LAPACK call).
+- Gaussian–box: √N(x; μ, Σ) = (8π)^{3/4} |Σ|^{1/4} N(x; μ, 2Σ), so BC = (8π)^{3/4} |Σ|^{1/4} V^{-1/2} · P(X ∈ B) with
+  X ~ N(μ, 2Σ): a Gaussian box probability. Closed form (a product of normal CDF differences) when the Gaussian's
+  axes are the box's; otherwise Genz's sequential conditioning with Gauss–Legendre quadrature in the two outer
+  variables and the innermost one in closed form, raising the order per pair until two orders agree to ε.
+- box–box: overlap volume / √(V₁V₂), closed form when the boxes share their axes.
+- anything else (mixtures, turned box pairs): importance sampling from q = ½(p₁ + p₂), which bounds the integrand
+  ratio √(p₁p₂)/q by 1 (AM–GM), seeded; its error is reported as three standard errors.
+
+Every function returns BC together with a per-pair error bound (0 for closed forms).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import ndtr, ndtri
+
+from gdt_pipeline import BoxUncertainty, GaussianUncertainty, MixtureUncertainty
+
+K_SQRT = (8.0 * np.pi) ** 0.75
+_CHUNK = 20_000
+
+
+def _sym(c: np.ndarray) -> tuple[np.ndarray, ...]:
+    return c[:, 0, 0], c[:, 0, 1], c[:, 0, 2], c[:, 1, 1], c[:, 1, 2], c[:, 2, 2]
+
+
+def det3(c: np.ndarray) -> np.ndarray:
+    """Determinants of symmetric 3x3 matrices ``(N,3,3)``."""
+    a, b, cc, d, e, f = _sym(c)
+    return a * (d * f - e * e) - b * (b * f - cc * e) + cc * (b * e - cc * d)
+
+
+def quad_inv3(c: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """xᵀ C⁻¹ x for symmetric 3x3 ``C`` via the adjugate (N pairs at once)."""
+    a, b, cc, d, e, f = _sym(c)
+    A, B, C = d * f - e * e, cc * e - b * f, b * e - cc * d
+    D, E, F = a * f - cc * cc, b * cc - a * e, a * d - b * b
+    det = a * A + b * B + cc * C
+    x0, x1, x2 = x[:, 0], x[:, 1], x[:, 2]
+    num = A * x0 * x0 + D * x1 * x1 + F * x2 * x2 + 2 * (B * x0 * x1 + C * x0 * x2 + E * x1 * x2)
+    return num / det
+
+
+def bd_gauss_gauss(mu1: np.ndarray, c1: np.ndarray, mu2: np.ndarray, c2: np.ndarray) -> np.ndarray:
+    """Closed-form Bhattacharyya distance of Gaussian pairs (the paper's equation)."""
+    c = 0.5 * (c1 + c2)
+    maha = quad_inv3(c, mu2 - mu1)
+    return maha / 8.0 + 0.5 * (np.log(det3(c)) - 0.5 * (np.log(det3(c1)) + np.log(det3(c2))))
+
+
+def _phi_diff(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Φ(hi) − Φ(lo) without cancellation in the upper tail."""
+    return np.where(lo > 0, ndtr(-lo) - ndtr(-hi), ndtr(hi) - ndtr(lo))
+
+
+def _box_frame(mu: np.ndarray, cov: np.ndarray, box: BoxUncertainty, center: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean, covariance and half-widths of X ~ N(μ, 2Σ) in the frame of the box (origin at its centre)."""
+    n = len(mu)
+    axes = box.axes(n)
+    m = np.einsum("nji,nj->ni", axes, mu - center)
+    c2 = 2.0 * np.einsum("nji,njk,nkl->nil", axes, cov, axes)
+    return m, 0.5 * (c2 + np.swapaxes(c2, 1, 2)), np.broadcast_to(box.half_widths, (n, 3))
+
+
+def _gauss_legendre(order: int) -> tuple[np.ndarray, np.ndarray]:
+    t, w = np.polynomial.legendre.leggauss(order)
+    return 0.5 * (t + 1.0), 0.5 * w
+
+
+def _box_prob_genz(m: np.ndarray, c: np.ndarray, h: np.ndarray, order: int) -> np.ndarray:
+    """P(−h ≤ X ≤ h), X ~ N(m, C), by sequential conditioning (Genz) with Gauss–Legendre in the outer two levels."""
+    chol = np.linalg.cholesky(c)
+    lo, hi = -h - m, h - m
+    t, w = _gauss_legendre(order)
+    out = np.empty(len(m))
+    for s in range(0, len(m), _CHUNK):
+        L = chol[s:s + _CHUNK]
+        a, b = lo[s:s + _CHUNK], hi[s:s + _CHUNK]
+        p1lo, p1hi = ndtr(a[:, 0] / L[:, 0, 0]), ndtr(b[:, 0] / L[:, 0, 0])
+        u1 = p1lo[:, None] + (p1hi - p1lo)[:, None] * t[None, :]  # (n, q)
+        z1 = ndtri(np.clip(u1, 1e-300, 1 - 1e-16))
+        a2 = (a[:, 1, None] - L[:, 1, 0, None] * z1) / L[:, 1, 1, None]
+        b2 = (b[:, 1, None] - L[:, 1, 0, None] * z1) / L[:, 1, 1, None]
+        p2lo, p2hi = ndtr(a2), ndtr(b2)
+        u2 = p2lo[..., None] + (p2hi - p2lo)[..., None] * t[None, None, :]  # (n, q, q)
+        z2 = ndtri(np.clip(u2, 1e-300, 1 - 1e-16))
+        shift = L[:, 2, 0, None, None] * z1[..., None] + L[:, 2, 1, None, None] * z2
+        a3 = (a[:, 2, None, None] - shift) / L[:, 2, 2, None, None]
+        b3 = (b[:, 2, None, None] - shift) / L[:, 2, 2, None, None]
+        inner = _phi_diff(a3, b3)
+        level2 = (p2hi - p2lo) * np.einsum("nij,j->ni", inner, w)
+        out[s:s + _CHUNK] = (p1hi - p1lo) * (level2 @ w)
+    return out
+
+
+ORDERS = (10, 14, 20, 28, 40, 56)  # Gauss–Legendre orders tried in turn; the cost grows with order²
+
+
+def bc_gauss_box(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUncertainty, *, eps: float = 1e-6
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Bhattacharyya coefficient of Gaussian–box pairs and its per-pair error bound.
+
+    For turned pairs the quadrature order is raised per pair until two successive orders agree to ``eps`` on BC;
+    the bound reported is that last difference (pairs that never agree keep the highest order's value and bound).
+    """
+    n = len(mu)
+    m, c, h = _box_frame(mu, cov, box, center)
+    # √|Σ| of the original Gaussian: |2Σ| = 8|Σ|
+    scale = K_SQRT * (det3(c) / 8.0) ** 0.25 / np.sqrt(np.prod(2.0 * h, axis=1))
+    sd = np.sqrt(np.diagonal(c, axis1=1, axis2=2))
+    off = np.abs(np.stack([c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]], 1))
+    aligned = np.all(off <= 1e-12 * np.stack([sd[:, 0] * sd[:, 1], sd[:, 0] * sd[:, 2], sd[:, 1] * sd[:, 2]], 1), 1)
+    prob = np.empty(n)
+    err = np.zeros(n)
+    if aligned.any():
+        lo, hi = (-h[aligned] - m[aligned]) / sd[aligned], (h[aligned] - m[aligned]) / sd[aligned]
+        prob[aligned] = np.prod(_phi_diff(lo, hi), axis=1)
+    todo = np.flatnonzero(~aligned)
+    prev = _box_prob_genz(m[todo], c[todo], h[todo], ORDERS[0]) if todo.size else np.zeros(0)
+    for order in ORDERS[1:]:
+        if not todo.size:
+            break
+        cur = _box_prob_genz(m[todo], c[todo], h[todo], order)
+        diff = np.abs(cur - prev) * scale[todo]
+        prob[todo], err[todo] = cur, diff
+        keep = diff > eps
+        todo, prev = todo[keep], cur[keep]
+    return scale * prob, err
+
+
+def bc_box_box(c1: np.ndarray, b1: BoxUncertainty, c2: np.ndarray, b2: BoxUncertainty
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Overlap volume over √(V₁V₂) for boxes sharing their axes; NaN where the axes differ."""
+    n = len(c1)
+    ax1, ax2 = b1.axes(n), b2.axes(n)
+    same = np.all(np.abs(ax1 - ax2) <= 1e-9, axis=(1, 2))
+    h1, h2 = np.broadcast_to(b1.half_widths, (n, 3)), np.broadcast_to(b2.half_widths, (n, 3))
+    delta = np.einsum("nji,nj->ni", ax1, c2 - c1)
+    overlap = np.clip(np.minimum(h1, delta + h2) - np.maximum(-h1, delta - h2), 0.0, None)
+    bc = np.prod(overlap, axis=1) / np.sqrt(np.prod(2 * h1, axis=1) * np.prod(2 * h2, axis=1))
+    return np.where(same, bc, np.nan), np.zeros(n)
+
+
+def bc_importance(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, rng: np.random.Generator,
+                  samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """BC of any pair of families by importance sampling from ½(p₁+p₂) (stratified half from each); 3·SE bound."""
+    n = len(mu1)
+    half = max(samples // 2, 8)
+    bc = np.empty(n)
+    err = np.empty(n)
+    chunk = max(1, 200_000 // half)
+    for s in range(0, n, chunk):
+        idx = np.arange(s, min(n, s + chunk))
+        a, b = u1.take(idx) if _rows(u1) > 1 else u1, u2.take(idx) if _rows(u2) > 1 else u2
+        k = len(idx)
+        x1 = mu1[idx, None, :] + a.sample(k, rng, half)  # from p1
+        x2 = mu2[idx, None, :] + b.sample(k, rng, half)  # from p2
+        vals = []
+        for x in (x1, x2):
+            rep = np.repeat(np.arange(k), half)
+            pa = _pdf_rows(a, rep, (x - mu1[idx, None, :]).reshape(-1, 3))
+            pb = _pdf_rows(b, rep, (x - mu2[idx, None, :]).reshape(-1, 3))
+            q = 0.5 * (pa + pb)
+            vals.append(np.where(q > 0, np.sqrt(pa * pb) / np.where(q > 0, q, 1.0), 0.0).reshape(k, half))
+        m1, m2 = vals[0].mean(axis=1), vals[1].mean(axis=1)
+        bc[idx] = 0.5 * (m1 + m2)
+        se = 0.5 * np.sqrt(vals[0].var(axis=1, ddof=1) / half + vals[1].var(axis=1, ddof=1) / half)
+        err[idx] = 3.0 * se
+    return bc, err
+
+
+def _rows(u: object) -> int:
+    arr = getattr(u, "cov", None)
+    if arr is None:
+        arr = getattr(u, "half_widths", None)
+    if arr is None:
+        arr = u.weights  # type: ignore[attr-defined]
+    return arr.shape[0]
+
+
+def _pdf_rows(u: object, rows: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    return (u.take(rows) if _rows(u) > 1 else u).pdf(offsets)  # type: ignore[attr-defined]
+
+
+def bhattacharyya(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, *, rng: np.random.Generator,
+                  eps: float = 1e-6, samples: int = 4096) -> tuple[np.ndarray, np.ndarray, str]:
+    """BD of N pairs (families given per pair, rows aligned or shared), its per-pair BC error bound, and the method."""
+    n = len(mu1)
+    if isinstance(u1, GaussianUncertainty) and isinstance(u2, GaussianUncertainty):
+        return bd_gauss_gauss(mu1, u1.covariance(n), mu2, u2.covariance(n)), np.zeros(n), "closed form"
+    if isinstance(u1, BoxUncertainty) and isinstance(u2, GaussianUncertainty):
+        mu1, u1, mu2, u2 = mu2, u2, mu1, u1
+    if isinstance(u1, GaussianUncertainty) and isinstance(u2, BoxUncertainty):
+        bc, err = bc_gauss_box(mu1, u1.covariance(n), mu2, u2, eps=eps)
+        return _bd(bc), err, "gaussian box probability"
+    if isinstance(u1, BoxUncertainty) and isinstance(u2, BoxUncertainty):
+        bc, err = bc_box_box(mu1, u1, mu2, u2)
+        turned = np.isnan(bc)
+        if turned.any():
+            idx = np.flatnonzero(turned)
+            bc[idx], err[idx] = bc_importance(mu1[idx], u1.take(idx), mu2[idx], u2.take(idx), rng, samples)
+        return _bd(bc), err, "box overlap" if not turned.any() else "box overlap + importance sampling"
+    if isinstance(u1, MixtureUncertainty | GaussianUncertainty | BoxUncertainty):
+        bc, err = bc_importance(mu1, u1, mu2, u2, rng, samples)
+        return _bd(bc), err, "importance sampling"
+    raise TypeError(f"no Bhattacharyya method for {type(u1).__name__} and {type(u2).__name__}")
+
+
+def _bd(bc: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore"):
+        return -np.log(np.clip(bc, 0.0, 1.0))

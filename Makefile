@@ -21,6 +21,7 @@ test: setup
 bench: setup
 	$(BIN)/python bench/engine_throughput.py
 	$(BIN)/python bench/voxel_mle.py
+	$(BIN)/python bench/distances.py
 
 lint: setup
 	$(BIN)/ruff check .

@@ -436,7 +436,8 @@ def _registration_record(reg: Registration | None) -> dict[str, Any] | None:
     if reg is None:
         return None
     return {"method": reg.method, "transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse,
-            "covariance": None if reg.covariance is None else reg.covariance.tolist()}
+            "covariance": None if reg.covariance is None else reg.covariance.tolist(),
+            "covariance_center": reg.center.tolist()}
 
 
 def _write_json_atomic(path: Path, data: Any) -> None:

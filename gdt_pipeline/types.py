@@ -482,16 +482,22 @@ class Change:
 
 @dataclass(frozen=True)
 class Registration:
-    """A rigid transform from the recent data to the twin, with its quality and 6x6 covariance when known."""
+    """A rigid transform from the recent data to the twin, with its quality and 6x6 covariance when known.
+
+    The covariance is over small rotations ω about ``center`` and translations: a point x moves by ω × (x − center)
+    + t. Expressing it about a centre near the data keeps georeferenced coordinates well conditioned.
+    """
 
     transform: np.ndarray
     fitness: float = 1.0
     rmse: float = 0.0
-    covariance: np.ndarray | None = None
+    covariance: np.ndarray | None = None  # 6x6 over (ωx, ωy, ωz, tx, ty, tz), rotation about ``center``
     method: str = ""
+    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "transform", frozen_array(self.transform, np.float64, (4, 4), "transform"))
+        object.__setattr__(self, "center", frozen_array(self.center, np.float64, (3,), "covariance center"))
         if self.covariance is not None:
             object.__setattr__(self, "covariance", frozen_array(self.covariance, np.float64, (6, 6), "covariance"))
 

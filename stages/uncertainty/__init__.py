@@ -229,7 +229,7 @@ def _registration_propagation(ctx: StageContext) -> dict[str, Any]:
         if not isinstance(unc, GaussianUncertainty) and ctx.params.non_gaussian == "error":
             raise ValueError(f"dataset {ds.name!r} has a {unc.family!r} uncertainty; adding a Gaussian registration "
                              f"error to it is not a {unc.family} (set `non_gaussian: moment_match`)")
-        extra = propagate_registration(ds.element_positions(), reg.covariance)
+        extra = propagate_registration(ds.element_positions() - reg.center, reg.covariance)
         out.append(ds.with_uncertainty(GaussianUncertainty(ds.element_covariance() + extra)))
     return {"recent": out}
 

@@ -413,11 +413,14 @@ class RegionOfView:
 
 @dataclass(frozen=True)
 class Correspondences:
-    """For every element of one recent dataset: the matched reference element and position, or none.
+    """Candidate matches of the elements of one recent dataset in the reference.
 
-    ``ref_item`` indexes the reference composite's items (-1: no correspondence inside the search space),
-    ``ref_element`` the element within that item, ``position`` the matched position on the reference
-    (a point, or the closest point on a facet), ``distance`` the Euclidean distance to it (NaN when none).
+    Each of the M candidates belongs to query element ``element[m]`` (default: candidate m is element m), compares
+    the query at ``query_position[m]`` (default: the element's position; facet samples use their own) with the
+    reference at ``position[m]`` whose uncertainty is that of reference element ``ref_element[m]`` of item
+    ``ref_item[m]``, or ``ref_uncertainty`` row m when given (a mixture of neighbours). ``ref_item`` −1: no
+    correspondence inside the search space. Distance stages score every candidate and keep, per element, the
+    lowest score (the paper: "the candidate with the lower change score wins").
     """
 
     query: int
@@ -426,18 +429,38 @@ class Correspondences:
     position: np.ndarray
     distance: np.ndarray
     method: str = ""
+    element: np.ndarray | None = None
+    query_position: np.ndarray | None = None
+    ref_uncertainty: Uncertainty | None = None
+    n_elements: int | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ref_item", frozen_array(self.ref_item, np.int64, (None,), "ref_item"))
-        n = len(self.ref_item)
-        object.__setattr__(self, "ref_element", frozen_array(self.ref_element, np.int64, (n,), "ref_element"))
-        object.__setattr__(self, "position", frozen_array(self.position, np.float64, (n, 3), "matched position"))
-        object.__setattr__(self, "distance", frozen_array(self.distance, np.float64, (n,), "distance"))
+        m = len(self.ref_item)
+        object.__setattr__(self, "ref_element", frozen_array(self.ref_element, np.int64, (m,), "ref_element"))
+        object.__setattr__(self, "position", frozen_array(self.position, np.float64, (m, 3), "matched position"))
+        object.__setattr__(self, "distance", frozen_array(self.distance, np.float64, (m,), "distance"))
+        if self.element is None:
+            object.__setattr__(self, "element", np.arange(m, dtype=np.int64))
+            object.__setattr__(self, "n_elements", m if self.n_elements is None else self.n_elements)
+        else:
+            object.__setattr__(self, "element", frozen_array(self.element, np.int64, (m,), "candidate element"))
+            if self.n_elements is None:
+                raise ValueError("correspondences with an element map need n_elements")
+        if self.query_position is not None:
+            object.__setattr__(self, "query_position",
+                               frozen_array(self.query_position, np.float64, (m, 3), "query position"))
 
     @property
     def found(self) -> np.ndarray:
-        """Mask of the elements that have a correspondence."""
+        """Mask of the candidates that are a correspondence."""
         return self.ref_item >= 0
+
+    def element_found(self) -> np.ndarray:
+        """Mask of the query elements with at least one correspondence."""
+        out = np.zeros(self.n_elements, dtype=bool)
+        out[self.element[self.found]] = True
+        return out
 
 
 @dataclass(frozen=True)
@@ -449,6 +472,7 @@ class Scores:
     measure: str
     p_value: np.ndarray | None = None
     tolerance: float | None = None  # ε_T of a numerical integration, when the measure used one
+    match: np.ndarray | None = None  # per element, the index of the winning correspondence candidate (-1: none)
     # simulate(rng, n): scores of n unchanged pairs drawn from this dataset's actual pairs' uncertainty models (the
     # null distribution a calibrated threshold needs); None when the measure cannot simulate.
     simulate: Callable[[np.random.Generator, int], np.ndarray] | None = field(default=None, compare=False,

@@ -41,22 +41,24 @@ bhattacharyya_gaussian = bd_gauss_gauss  # the closed form, kept under its descr
 
 @dataclass(frozen=True)
 class PairGroup:
-    """Pairs of one recent dataset with one reference item: query element indices, means and uncertainties."""
+    """Candidate pairs of one recent dataset sharing one reference model: candidate indices, the query elements they
+    belong to, means and uncertainties of both sides."""
 
     idx: np.ndarray
+    elements: np.ndarray
     mu_q: np.ndarray
     u_q: Any
     mu_r: np.ndarray
     u_r: Any
-    ref_item: int
+    ref_items: np.ndarray
     ref_elements: np.ndarray
     normal: np.ndarray | None = None  # local surface normal per pair, for tests along the normal
 
     def subset(self, sel: np.ndarray, mu_q: np.ndarray | None = None, mu_r: np.ndarray | None = None) -> PairGroup:
         """The pairs ``sel`` of this group, optionally with other means (simulated ones)."""
-        return PairGroup(self.idx[sel], self.mu_q[sel] if mu_q is None else mu_q, _take(self.u_q, sel),
-                         self.mu_r[sel] if mu_r is None else mu_r, _take(self.u_r, sel), self.ref_item,
-                         self.ref_elements[sel], None if self.normal is None else self.normal[sel])
+        return PairGroup(self.idx[sel], self.elements[sel], self.mu_q[sel] if mu_q is None else mu_q,
+                         _take(self.u_q, sel), self.mu_r[sel] if mu_r is None else mu_r, _take(self.u_r, sel),
+                         self.ref_items[sel], self.ref_elements[sel], None if self.normal is None else self.normal[sel])
 
 
 def _rows(u: Any) -> int:
@@ -72,20 +74,40 @@ def _take(u: Any, idx: np.ndarray) -> Any:
 
 
 def pair_groups(ds: Dataset, corr: Correspondences, reference: Composite) -> list[PairGroup]:
-    """The pairs of one recent dataset, grouped by reference item (each item has its own uncertainty model)."""
+    """The candidate pairs of one recent dataset, grouped so that each group has one reference uncertainty model."""
     if ds.uncertainty is None:
         raise ValueError(f"recent dataset {ds.name!r} has no uncertainty: add an uncertainty stage before this one")
     found = np.flatnonzero(corr.found)
-    pos = ds.element_positions()
+    elem = corr.element
+    qpos = corr.query_position if corr.query_position is not None else ds.element_positions()[elem]
+    if corr.ref_uncertainty is not None:  # per-candidate reference models (mixtures of neighbours)
+        return [PairGroup(found, elem[found], qpos[found], _take(ds.uncertainty, elem[found]), corr.position[found],
+                          _take(corr.ref_uncertainty, found), corr.ref_item[found], corr.ref_element[found])]
     groups = []
     for item in np.unique(corr.ref_item[found]):
         sel = found[corr.ref_item[found] == item]
         ref = reference.items[item].dataset
         if ref.uncertainty is None:
             raise ValueError(f"reference dataset {ref.name!r} has no uncertainty")
-        groups.append(PairGroup(sel, pos[sel], _take(ds.uncertainty, sel), corr.position[sel],
-                                _take(ref.uncertainty, corr.ref_element[sel]), int(item), corr.ref_element[sel]))
+        groups.append(PairGroup(sel, elem[sel], qpos[sel], _take(ds.uncertainty, elem[sel]), corr.position[sel],
+                                _take(ref.uncertainty, corr.ref_element[sel]), corr.ref_item[sel],
+                                corr.ref_element[sel]))
     return groups
+
+
+def lowest_per_element(elements: np.ndarray, cand_score: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per element, the lowest candidate score (NaN when it has none) and the index of that candidate (−1)."""
+    key = np.where(np.isnan(cand_score), np.inf, cand_score)
+    order = np.lexsort((key, elements))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = elements[order][1:] != elements[order][:-1]
+    best = order[first]
+    score = np.full(n, np.nan)
+    match = np.full(n, -1, dtype=np.int64)
+    ok = np.isfinite(key[best])
+    score[elements[best[ok]]] = cand_score[best[ok]]
+    match[elements[best[ok]]] = best[ok]
+    return score, match
 
 
 Measure = Callable[[PairGroup, np.random.Generator], tuple[np.ndarray, np.ndarray | None, np.ndarray]]
@@ -130,23 +152,28 @@ def _run_measure(ctx: StageContext, name: str, measure: Measure, tolerance: floa
     with ctx.progress.task(f"{name} scores", total=len(ctx["correspondences"])) as advance:
         for corr in ctx["correspondences"]:
             ds = recent[corr.query]
-            score = np.full(ds.n_elements, np.nan)
-            p_value = None
+            m = len(corr.ref_item)
+            cand_score = np.full(m, np.nan)
+            cand_p = None
             groups = pair_groups(ds, corr, reference)
             if prepare is not None:
                 groups = prepare(groups, corr.query)
             for g in groups:
                 s, p, err = measure(g, ctx.rng)
-                score[g.idx] = s
+                cand_score[g.idx] = s
                 if p is not None:
-                    if p_value is None:
-                        p_value = np.full(ds.n_elements, np.nan)
-                    p_value[g.idx] = p
+                    if cand_p is None:
+                        cand_p = np.full(m, np.nan)
+                    cand_p[g.idx] = p
                 if err.size:
                     worst = max(worst, float(np.max(err)))
+            score, match = lowest_per_element(corr.element, cand_score, ds.n_elements)
+            p_value = None
+            if cand_p is not None:
+                p_value = np.where(match >= 0, cand_p[np.maximum(match, 0)], np.nan)
             out.append(Scores(query=corr.query, score=score, measure=name, p_value=p_value,
                               tolerance=None if tolerance is None else max(tolerance, worst),
-                              simulate=_simulator(groups, measure)))
+                              simulate=_simulator(groups, measure), match=match))
             advance()
     ctx.report(max_integration_error=worst, tolerance=tolerance)
     return {"scores": out}
@@ -221,15 +248,16 @@ def _welch(ctx: StageContext) -> dict[str, Any]:
         cloud_normals = None
         out = []
         for g in groups:
-            ref = reference.items[g.ref_item].dataset
+            ref = reference.items[int(g.ref_items[0])].dataset
             if ds.faces is not None or ref.faces is not None:
-                tri = ds.points[ds.faces[g.idx]] if ds.faces is not None else ref.points[ref.faces[g.ref_elements]]
+                tri = (ds.points[ds.faces[g.elements]] if ds.faces is not None
+                       else ref.points[ref.faces[g.ref_elements]])
                 nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
                 nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
             else:
                 if cloud_normals is None:
                     cloud_normals = estimate_normals(ds.points, ctx.params.normal_neighbours)
-                nrm = cloud_normals[g.idx]
+                nrm = cloud_normals[g.elements]
             out.append(dataclasses.replace(g, normal=nrm))
         return out
 

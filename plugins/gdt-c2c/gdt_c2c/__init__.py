@@ -20,13 +20,16 @@ class C2CParams(BaseModel):
 
 
 def c2c(ctx: StageContext) -> dict[str, Any]:
-    """Euclidean distance of each recent element to its corresponding reference position (NaN when none)."""
+    """Euclidean distance of each recent element to its nearest corresponding candidate (NaN when none)."""
     recent = ctx["recent"]
     out = []
     for corr in ctx["correspondences"]:
-        pos = recent[corr.query].element_positions()
-        d = np.linalg.norm(pos - corr.position, axis=1) * ctx.params.scale
-        out.append(Scores(query=corr.query, score=np.where(corr.found, d, np.nan), measure="c2c"))
+        ds = recent[corr.query]
+        qpos = corr.query_position if corr.query_position is not None else ds.element_positions()[corr.element]
+        d = np.where(corr.found, np.linalg.norm(qpos - corr.position, axis=1) * ctx.params.scale, np.nan)
+        score = np.full(ds.n_elements, np.nan)
+        np.fmin.at(score, corr.element, d)  # several candidates per element: the closest one counts
+        out.append(Scores(query=corr.query, score=score, measure="c2c"))
     return {"scores": out}
 
 

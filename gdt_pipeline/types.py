@@ -96,6 +96,15 @@ def _psd_factor(cov: np.ndarray) -> np.ndarray:
     return v * np.sqrt(np.clip(w, 0.0, None))[..., None, :]
 
 
+def _gauss_pdf_many(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """N(d; 0, C) for ``d (..., S, 3)`` and ``cov (..., 3, 3)``: one factorisation per covariance, S samples each."""
+    chol = np.linalg.cholesky(cov)
+    inv = np.linalg.inv(chol)
+    y = np.einsum("...ij,...sj->...si", inv, d)
+    logdet = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(axis=-1)
+    return np.exp(-0.5 * np.einsum("...si,...si->...s", y, y) - 0.5 * logdet[..., None] - 1.5 * np.log(2 * np.pi))
+
+
 def _gauss_pdf(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
     chol = np.linalg.cholesky(cov)
     y = np.linalg.solve(chol, d[..., None])[..., 0]
@@ -146,6 +155,10 @@ class GaussianUncertainty:
         """Density of each element's distribution at an ``(n,3)`` offset from its position."""
         d = np.asarray(offsets, dtype=np.float64)
         return _gauss_pdf(d, self.covariance(len(d)))
+
+    def pdf_many(self, offsets: np.ndarray) -> np.ndarray:
+        """Densities at ``(n,S,3)`` offsets, S per element (one factorisation per element)."""
+        return _gauss_pdf_many(np.asarray(offsets, dtype=np.float64), self.covariance(len(offsets)))
 
     def region99(self, n: int) -> Region99:
         """The 99 % ellipsoid of each element (radii from the chi-square quantile with 3 degrees of freedom)."""
@@ -217,6 +230,15 @@ class BoxUncertainty:
         inside = np.all(np.abs(local) <= hw, axis=1)
         return np.where(inside, 1.0 / np.prod(2.0 * hw, axis=1), 0.0)
 
+    def pdf_many(self, offsets: np.ndarray) -> np.ndarray:
+        """Densities at ``(n,S,3)`` offsets, S per element."""
+        d = np.asarray(offsets, dtype=np.float64)
+        n = len(d)
+        hw = np.broadcast_to(self.half_widths, (n, 3))
+        local = np.einsum("nji,nsj->nsi", self.axes(n), d)
+        inside = np.all(np.abs(local) <= hw[:, None, :], axis=2)
+        return np.where(inside, (1.0 / np.prod(2.0 * hw, axis=1))[:, None], 0.0)
+
     def region99(self, n: int) -> Region99:
         """The centred box holding 99 % of the mass (half-widths scaled by 0.99^(1/3))."""
         hw = np.broadcast_to(self.half_widths, (n, 3)) * BOX_99
@@ -285,6 +307,13 @@ class MixtureUncertainty:
         d = np.asarray(offsets, dtype=np.float64)
         w, mu, cov = self._rows(len(d))
         return np.einsum("nk,nk->n", w, _gauss_pdf(d[:, None, :] - mu, cov))
+
+    def pdf_many(self, offsets: np.ndarray) -> np.ndarray:
+        """Densities at ``(n,S,3)`` offsets, S per element (one factorisation per component)."""
+        d = np.asarray(offsets, dtype=np.float64)
+        w, mu, cov = self._rows(len(d))
+        rel = d[:, None, :, :] - mu[:, :, None, :]  # (n, K, S, 3)
+        return np.einsum("nk,nks->ns", w, _gauss_pdf_many(rel, cov))
 
     def region99(self, n: int) -> Region99:
         """A sphere around the element holding at least 99 %: it encloses every component's 99 % ellipsoid."""
@@ -418,7 +447,8 @@ class Correspondences:
     Each of the M candidates belongs to query element ``element[m]`` (default: candidate m is element m), compares
     the query at ``query_position[m]`` (default: the element's position; facet samples use their own) with the
     reference at ``position[m]`` whose uncertainty is that of reference element ``ref_element[m]`` of item
-    ``ref_item[m]``, or ``ref_uncertainty`` row m when given (a mixture of neighbours). ``ref_item`` −1: no
+    ``ref_item[m]``, or row ``ref_row[m]`` of ``ref_uncertainty`` where that is ≥ 0 (a mixture of neighbours;
+    default: row m for every candidate when ``ref_uncertainty`` is given). ``ref_item`` −1: no
     correspondence inside the search space. Distance stages score every candidate and keep, per element, the
     lowest score (the paper: "the candidate with the lower change score wins").
     """
@@ -433,10 +463,14 @@ class Correspondences:
     query_position: np.ndarray | None = None
     ref_uncertainty: Uncertainty | None = None
     n_elements: int | None = None
+    ref_row: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ref_item", frozen_array(self.ref_item, np.int64, (None,), "ref_item"))
         m = len(self.ref_item)
+        if self.ref_uncertainty is not None:
+            rows = np.arange(m) if self.ref_row is None else self.ref_row
+            object.__setattr__(self, "ref_row", frozen_array(rows, np.int64, (m,), "ref_row"))
         object.__setattr__(self, "ref_element", frozen_array(self.ref_element, np.int64, (m,), "ref_element"))
         object.__setattr__(self, "position", frozen_array(self.position, np.float64, (m, 3), "matched position"))
         object.__setattr__(self, "distance", frozen_array(self.distance, np.float64, (m,), "distance"))

@@ -99,3 +99,14 @@ def test_transform_moves_every_family() -> None:
 def test_mixture_validation() -> None:
     with pytest.raises(ValueError, match="sum to 1"):
         MixtureUncertainty(np.array([[0.5, 0.6]]), np.zeros((1, 2, 3)), np.tile(np.eye(3), (1, 2, 1, 1)))
+
+
+@pytest.mark.parametrize("name", ["gaussian", "box", "mixture"])
+def test_pdf_many_matches_pdf(name: str) -> None:
+    fam = _families()[name]
+    rng = np.random.default_rng(4)
+    offsets = fam.sample(2, rng, k=50)
+    many = fam.pdf_many(offsets)
+    rows = np.repeat(np.arange(2), 50)
+    one = fam.take(rows).pdf(offsets.reshape(-1, 3)).reshape(2, 50)
+    np.testing.assert_allclose(many, one, rtol=1e-12)

@@ -1,15 +1,27 @@
-"""Correspondences. Here ``nearest``: each recent element (a point, or a facet's centroid) is matched to the closest
-visible reference element (a point through a KD-tree, or the closest point on a facet through Open3D raycasting).
-The uncertainty-directed cases of the paper come with the correspondence issue."""
+"""Correspondences between recent elements and the twin (paper Sec. 4.2.2):
+
+- ``point_to_point``, ``point_to_mesh``, ``mesh_to_point``, ``mesh_to_mesh``: the paper's four uncertainty-directed
+  cases (see ``directed``), each for its kinds of data;
+- ``auto``: picks the case per recent dataset and per reference item from their kinds, so a workflow need not say;
+- ``nearest``: the plain baseline, each element (a point, or a facet's centroid) matched to the closest visible
+  reference element.
+
+Elements with no correspondence inside the search space are kept and marked (no candidate): the threshold then
+makes them new, never drops them.
+"""
 
 from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
+from scipy.stats import chi2
 
 from gdt_pipeline import Correspondences, StageContext, StageSpec, hookimpl
 from gdt_pipeline.geometry import ReferenceIndex
+
+from .directed import ReferenceMeshes, ReferencePoints, point_to_mesh, point_to_point, query_samples, to_correspondences
 
 
 class NearestParams(BaseModel):
@@ -35,9 +47,80 @@ def _nearest(ctx: StageContext) -> dict[str, Any]:
     return {"correspondences": out}
 
 
+class DirectedParams(BaseModel):
+    """Parameters of the uncertainty-directed correspondence search."""
+
+    model_config = ConfigDict(extra="forbid")
+    probability: float = Field(0.99, gt=0.5, lt=1.0, description="Probability of the ellipsoid holding the "
+                                                                  "point-to-point neighbours (combined uncertainty).")
+    search_sigmas: PositiveFloat = Field(4.0, description="Reach of rays and closest points, in standard deviations "
+                                                          "of the largest combined uncertainty axis.")
+    max_components: PositiveInt = Field(16, description="Neighbours kept per point-to-point mixture (closest "
+                                                        "in Mahalanobis distance).")
+    sample_density: PositiveFloat | None = Field(None, description="Samples per unit² on recent facets (default: "
+                                                                   "about four on an average facet).")
+    max_samples_per_facet: PositiveInt = Field(64, description="Cap of samples on one facet.")
+
+
+def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: bool, use_meshes: bool
+              ) -> dict[str, Any]:
+    p = ctx.params
+    reference = ctx["reference"]
+    ref_pts = ReferencePoints(reference) if use_points else None
+    ref_mesh = ReferenceMeshes(reference) if use_meshes else None
+    if (ref_pts is None or ref_pts.empty) and (ref_mesh is None or ref_mesh.empty):
+        wanted = " or ".join(k for k, u in (("points", use_points), ("meshes", use_meshes)) if u)
+        raise ValueError(f"{name}: the twin holds no visible {wanted} to match against")
+    q99 = float(chi2.ppf(p.probability, 3))
+    extra_var = 0.0
+    if ref_mesh is not None and not ref_mesh.empty:
+        extra_var = max(float(np.linalg.eigvalsh(np.asarray(reference.items[i].dataset.element_covariance())
+                                                 [vis]).max()) for i, vis in ref_mesh.items)
+    out = []
+    for qi, ds in enumerate(ctx["recent"]):
+        if query_kind is not None and ds.kind != query_kind:
+            other = {"points": "point", "mesh": "mesh"}[ds.kind]
+            raise ValueError(f"{name} matches {query_kind} data, but {ds.name!r} is a {ds.kind}; use "
+                             f"{other}_to_{'point' if use_points else 'mesh'} or auto")
+        if ds.uncertainty is None:
+            raise ValueError(f"recent dataset {ds.name!r} has no uncertainty: add an uncertainty stage before {name}")
+        element, qpos = query_samples(ds, ctx.rng, p.sample_density, p.max_samples_per_facet)
+        qcov = np.asarray(ds.uncertainty.covariance(ds.n_elements))[element]
+        parts = []
+        if ref_pts is not None and not ref_pts.empty:
+            parts.append(point_to_point(qpos, qcov, ref_pts, q99, p.max_components, element))
+        if ref_mesh is not None and not ref_mesh.empty:
+            parts.append(point_to_mesh(qpos, qcov, ref_mesh, p.search_sigmas, extra_var, element))
+        corr = to_correspondences(qi, ds.n_elements, parts, name)
+        matched = int(corr.element_found().sum())
+        ctx.log.info("%s: %d of %d elements have candidates (%d candidates from %d query points)", ds.name, matched,
+                     ds.n_elements, len(corr.ref_item), len(qpos))
+        ctx.report(**{ds.name: {"elements": ds.n_elements, "matched": matched, "candidates": len(corr.ref_item),
+                                "query_points": len(qpos)}})
+        out.append(corr)
+    return {"correspondences": out}
+
+
+def _stage(name: str, query_kind: str | None, points: bool, meshes: bool, description: str) -> StageSpec:
+    return StageSpec(name=name, family="correspondence", version="1.0.0", params=DirectedParams,
+                     run=lambda ctx: _directed(ctx, name, query_kind, points, meshes),
+                     requires=("recent", "reference"), provides=("correspondences",), description=description)
+
+
 @hookimpl
 def gdt_stages() -> list[StageSpec]:
     """The built-in correspondence estimators."""
-    return [StageSpec(name="nearest", family="correspondence", version="1.0.0", params=NearestParams, run=_nearest,
-                      requires=("recent", "reference"), provides=("correspondences",),
-                      description="Closest visible reference point or facet (Euclidean).")]
+    return [
+        StageSpec(name="nearest", family="correspondence", version="1.0.0", params=NearestParams, run=_nearest,
+                  requires=("recent", "reference"), provides=("correspondences",),
+                  description="Closest visible reference point or facet (Euclidean baseline)."),
+        _stage("point_to_point", "points", True, False,
+               "Reference points inside the query's 99 % ellipsoid, merged into a mixture."),
+        _stage("point_to_mesh", "points", False, True,
+               "Ray along the largest uncertainty axis (both senses) and closest point; lower score wins."),
+        _stage("mesh_to_point", "mesh", True, False,
+               "Seeded samples on each facet, each point-to-point; the facet keeps its lowest score."),
+        _stage("mesh_to_mesh", "mesh", False, True,
+               "Seeded samples on each facet, each point-to-mesh; the facet keeps its lowest score."),
+        _stage("auto", None, True, True, "The case from the kinds of the recent data and of each reference item."),
+    ]

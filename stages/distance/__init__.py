@@ -80,10 +80,14 @@ def pair_groups(ds: Dataset, corr: Correspondences, reference: Composite) -> lis
     found = np.flatnonzero(corr.found)
     elem = corr.element
     qpos = corr.query_position if corr.query_position is not None else ds.element_positions()[elem]
-    if corr.ref_uncertainty is not None:  # per-candidate reference models (mixtures of neighbours)
-        return [PairGroup(found, elem[found], qpos[found], _take(ds.uncertainty, elem[found]), corr.position[found],
-                          _take(corr.ref_uncertainty, found), corr.ref_item[found], corr.ref_element[found])]
     groups = []
+    if corr.ref_uncertainty is not None:  # per-candidate reference models (mixtures of neighbours)
+        over = found[corr.ref_row[found] >= 0]
+        if over.size:
+            groups.append(PairGroup(over, elem[over], qpos[over], _take(ds.uncertainty, elem[over]),
+                                    corr.position[over], _take(corr.ref_uncertainty, corr.ref_row[over]),
+                                    corr.ref_item[over], corr.ref_element[over]))
+        found = found[corr.ref_row[found] < 0]
     for item in np.unique(corr.ref_item[found]):
         sel = found[corr.ref_item[found] == item]
         ref = reference.items[item].dataset

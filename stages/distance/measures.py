@@ -172,11 +172,10 @@ def bc_importance(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, rng:
         x2 = mu2[idx, None, :] + b.sample(k, rng, half)  # from p2
         vals = []
         for x in (x1, x2):
-            rep = np.repeat(np.arange(k), half)
-            pa = _pdf_rows(a, rep, (x - mu1[idx, None, :]).reshape(-1, 3))
-            pb = _pdf_rows(b, rep, (x - mu2[idx, None, :]).reshape(-1, 3))
+            pa = a.pdf_many(x - mu1[idx, None, :])  # shared (one-row) models broadcast
+            pb = b.pdf_many(x - mu2[idx, None, :])
             q = 0.5 * (pa + pb)
-            vals.append(np.where(q > 0, np.sqrt(pa * pb) / np.where(q > 0, q, 1.0), 0.0).reshape(k, half))
+            vals.append(np.where(q > 0, np.sqrt(pa * pb) / np.where(q > 0, q, 1.0), 0.0))
         m1, m2 = vals[0].mean(axis=1), vals[1].mean(axis=1)
         bc[idx] = 0.5 * (m1 + m2)
         se = 0.5 * np.sqrt(vals[0].var(axis=1, ddof=1) / half + vals[1].var(axis=1, ddof=1) / half)
@@ -191,10 +190,6 @@ def _rows(u: object) -> int:
     if arr is None:
         arr = u.weights  # type: ignore[attr-defined]
     return arr.shape[0]
-
-
-def _pdf_rows(u: object, rows: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    return (u.take(rows) if _rows(u) > 1 else u).pdf(offsets)  # type: ignore[attr-defined]
 
 
 def bhattacharyya(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, *, rng: np.random.Generator,

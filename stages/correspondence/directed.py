@@ -1,0 +1,213 @@
+"""Uncertainty-directed correspondences (paper Sec. 4.2.2, Fig. 5), vectorised.
+
+- point → point: the reference points inside the query's 99 % ellipsoid of the combined uncertainty (a KD-tree
+  ball search, then the exact Mahalanobis test per pair), merged into a Gaussian mixture that is compared with the
+  query as one candidate;
+- point → mesh: the first hit of a ray from the query along its most distinct uncertainty direction (largest
+  eigenvector, both senses), and the closest point on the mesh (the natural choice for isotropic uncertainty), as
+  separate candidates: the distance stage keeps the one with the lower change score;
+- mesh → point and mesh → mesh: seeded random samples on each facet, in number proportional to its area, each
+  treated as a point with the facet's uncertainty; the facet keeps the lowest score of its samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gdt_pipeline import Composite, Correspondences, Dataset, MixtureUncertainty
+
+from ..distance.measures import quad_inv3
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """Flat candidate arrays before they become a ``Correspondences``."""
+
+    element: np.ndarray
+    query_position: np.ndarray
+    ref_item: np.ndarray
+    ref_element: np.ndarray
+    position: np.ndarray
+    mixture: MixtureUncertainty | None = None
+
+
+def query_samples(ds: Dataset, rng: np.random.Generator, density: float | None, max_per_facet: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Query points with the element each belongs to: the points themselves, or area-weighted facet samples."""
+    if ds.faces is None:
+        return np.arange(len(ds.points)), ds.points
+    tri = ds.points[ds.faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if density is None:
+        density = 4.0 / max(float(area.mean()), 1e-300)  # about four samples on an average facet
+    counts = np.clip(np.round(area * density).astype(np.int64), 1, max_per_facet)
+    idx = np.repeat(np.arange(len(tri)), counts)
+    r1, r2 = rng.random(len(idx)), rng.random(len(idx))
+    flip = r1 + r2 > 1
+    r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
+    t = tri[idx]
+    return idx, t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
+
+
+class ReferencePoints:
+    """The visible points of a composite's point items, with their covariances, in one KD-tree."""
+
+    def __init__(self, composite: Composite) -> None:
+        pos, item, elem, cov = [], [], [], []
+        for i, it in enumerate(composite.items):
+            ds = it.dataset
+            if ds.faces is not None or not it.visible.any():
+                continue
+            vis = np.flatnonzero(it.visible)
+            if ds.uncertainty is None:
+                raise ValueError(f"reference dataset {ds.name!r} has no uncertainty")
+            pos.append(ds.points[vis])
+            item.append(np.full(len(vis), i))
+            elem.append(vis)
+            cov.append(np.asarray(ds.uncertainty.covariance(ds.n_elements))[vis])
+        self.empty = not pos
+        if self.empty:
+            return
+        self.pos, self.item, self.elem = np.concatenate(pos), np.concatenate(item), np.concatenate(elem)
+        self.cov = np.concatenate(cov)
+        self.origin = self.pos.mean(axis=0)
+        self.tree = cKDTree(self.pos - self.origin)
+        self.max_var = float(np.linalg.eigvalsh(self.cov)[:, -1].max())
+
+
+def point_to_point(qpos: np.ndarray, qcov: np.ndarray, ref: ReferencePoints, chi2: float, max_components: int,
+                   element: np.ndarray) -> Candidates:
+    """One mixture candidate per query that has reference points inside its combined 99 % ellipsoid."""
+    lam_q = np.linalg.eigvalsh(qcov)[:, -1]
+    radius = np.sqrt(chi2 * (lam_q + ref.max_var))
+    lists = ref.tree.query_ball_point(qpos - ref.origin, radius, return_sorted=False)
+    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    flat_r = np.fromiter((j for x in lists for j in x), dtype=np.int64, count=int(counts.sum()))
+    flat_q = np.repeat(np.arange(len(qpos)), counts)
+    d = ref.pos[flat_r] - qpos[flat_q]
+    m2 = quad_inv3(qcov[flat_q] + ref.cov[flat_r], d)
+    keep = m2 <= chi2
+    flat_q, flat_r, m2 = flat_q[keep], flat_r[keep], m2[keep]
+    order = np.lexsort((m2, flat_q))
+    flat_q, flat_r, m2 = flat_q[order], flat_r[order], m2[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(flat_q)) + 1]
+    rank = np.arange(len(flat_q)) - np.repeat(starts, np.diff(np.r_[starts, len(flat_q)]))
+    top = rank < max_components
+    flat_q, flat_r, rank = flat_q[top], flat_r[top], rank[top]
+    queries = np.unique(flat_q)
+    if queries.size == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return Candidates(z, np.zeros((0, 3)), z, z, np.zeros((0, 3)), None)
+    row = np.searchsorted(queries, flat_q)
+    k = int(rank.max()) + 1
+    n = len(queries)
+    weights = np.zeros((n, k))
+    weights[row, rank] = 1.0
+    weights /= weights.sum(axis=1, keepdims=True)
+    comp_pos = np.zeros((n, k, 3))
+    comp_pos[row, rank] = ref.pos[flat_r]
+    centre = np.einsum("nk,nki->ni", weights, comp_pos)
+    means = np.where(weights[..., None] > 0, comp_pos - centre[:, None, :], 0.0)
+    covs = np.broadcast_to(np.eye(3), (n, k, 3, 3)).copy()  # placeholders for zero-weight slots
+    covs[row, rank] = ref.cov[flat_r]
+    nearest = flat_r[rank == 0]  # the lowest-Mahalanobis neighbour names the matched element
+    return Candidates(element=element[queries], query_position=qpos[queries], ref_item=ref.item[nearest],
+                      ref_element=ref.elem[nearest], position=centre,
+                      mixture=MixtureUncertainty(weights, means, covs))
+
+
+class ReferenceMeshes:
+    """The visible facets of a composite's mesh items in one Open3D raycasting scene (float32 near the origin)."""
+
+    def __init__(self, composite: Composite) -> None:
+        import open3d as o3d
+
+        self.items: list[tuple[int, np.ndarray]] = []
+        geoms = []
+        lows, highs = [], []
+        for i, it in enumerate(composite.items):
+            ds = it.dataset
+            if ds.faces is None or not it.visible.any():
+                continue
+            vis = np.flatnonzero(it.visible)
+            self.items.append((i, vis))
+            geoms.append((ds.points, ds.faces[vis]))
+            lows.append(ds.points.min(axis=0))
+            highs.append(ds.points.max(axis=0))
+        self.empty = not geoms
+        if self.empty:
+            return
+        self.origin = (np.min(lows, axis=0) + np.max(highs, axis=0)) / 2
+        self.scene = o3d.t.geometry.RaycastingScene()
+        for verts, faces in geoms:
+            self.scene.add_triangles(o3d.core.Tensor((verts - self.origin).astype(np.float32)),
+                                     o3d.core.Tensor(faces.astype(np.uint32)))
+        self.item_of_geom = np.array([i for i, _ in self.items], dtype=np.int64)
+
+    def _map(self, gid: np.ndarray, pid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        item = self.item_of_geom[gid]
+        elem = np.empty(len(gid), dtype=np.int64)
+        for g in np.unique(gid):
+            sel = gid == g
+            elem[sel] = self.items[g][1][pid[sel]]
+        return item, elem
+
+
+def point_to_mesh(qpos: np.ndarray, qcov: np.ndarray, ref: ReferenceMeshes, search_sigmas: float, extra_var: float,
+                  element: np.ndarray) -> Candidates:
+    """Candidates from rays along each query's largest uncertainty axis (both senses) and from the closest point."""
+    import open3d as o3d
+
+    w, v = np.linalg.eigh(qcov)
+    axis = v[:, :, -1]
+    reach = search_sigmas * np.sqrt(w[:, -1] + extra_var)
+    q = (qpos - ref.origin).astype(np.float32)
+    parts = []
+    for sense in (1.0, -1.0):
+        rays = np.hstack([q, (sense * axis).astype(np.float32)])
+        ans = ref.scene.cast_rays(o3d.core.Tensor(rays))
+        t = ans["t_hit"].numpy().astype(np.float64)
+        ok = np.isfinite(t) & (t <= reach)
+        idx = np.flatnonzero(ok)
+        item, elem = ref._map(ans["geometry_ids"].numpy()[ok].astype(np.int64),
+                              ans["primitive_ids"].numpy()[ok].astype(np.int64))
+        parts.append((idx, item, elem, qpos[idx] + sense * axis[idx] * t[ok, None]))
+    ans = ref.scene.compute_closest_points(o3d.core.Tensor(q))
+    pts = ans["points"].numpy().astype(np.float64) + ref.origin
+    ok = np.linalg.norm(pts - qpos, axis=1) <= reach
+    idx = np.flatnonzero(ok)
+    item, elem = ref._map(ans["geometry_ids"].numpy()[ok].astype(np.int64),
+                          ans["primitive_ids"].numpy()[ok].astype(np.int64))
+    parts.append((idx, item, elem, pts[ok]))
+    idx = np.concatenate([p[0] for p in parts])
+    return Candidates(element=element[idx], query_position=qpos[idx], ref_item=np.concatenate([p[1] for p in parts]),
+                      ref_element=np.concatenate([p[2] for p in parts]),
+                      position=np.concatenate([p[3] for p in parts]))
+
+
+def to_correspondences(query: int, n_elements: int, parts: list[Candidates], method: str) -> Correspondences:
+    """Merge candidate sets (at most one of them with mixtures) into one ``Correspondences``."""
+    parts = [p for p in parts if len(p.element)]
+    if not parts:
+        z = np.zeros(0, dtype=np.int64)
+        return Correspondences(query, z, z, np.zeros((0, 3)), np.zeros(0), method, element=z,
+                               query_position=np.zeros((0, 3)), n_elements=n_elements)
+    mixtures = [p for p in parts if p.mixture is not None]
+    if len(mixtures) > 1:
+        raise ValueError("internal: at most one set of mixture candidates can be merged")
+    element = np.concatenate([p.element for p in parts])
+    qpos = np.concatenate([p.query_position for p in parts])
+    pos = np.concatenate([p.position for p in parts])
+    ref_row = None
+    if mixtures:
+        # mixture candidates point at their own row; the others (facets) use their element's uncertainty
+        ref_row = np.concatenate([np.arange(len(p.element)) if p.mixture is not None
+                                  else np.full(len(p.element), -1) for p in parts])
+    return Correspondences(query, np.concatenate([p.ref_item for p in parts]),
+                           np.concatenate([p.ref_element for p in parts]), pos,
+                           np.linalg.norm(qpos - pos, axis=1), method, element=element, query_position=qpos,
+                           ref_uncertainty=mixtures[0].mixture if mixtures else None, n_elements=n_elements,
+                           ref_row=ref_row)

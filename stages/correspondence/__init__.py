@@ -56,7 +56,8 @@ class DirectedParams(BaseModel):
     search_sigmas: PositiveFloat = Field(4.0, description="Reach of rays and closest points, in standard deviations "
                                                           "of the largest combined uncertainty axis.")
     max_components: PositiveInt = Field(16, description="Neighbours kept per point-to-point mixture (closest "
-                                                        "in Mahalanobis distance).")
+                                                        "in Mahalanobis distance, out of 4x as many "
+                                                        "Euclidean-nearest per variance tier).")
     sample_density: PositiveFloat | None = Field(None, description="Samples per unit² on recent facets (default: "
                                                                    "about four on an average facet).")
     max_samples_per_facet: PositiveInt = Field(64, description="Cap of samples on one facet.")

@@ -74,19 +74,43 @@ class ReferencePoints:
         self.pos, self.item, self.elem = np.concatenate(pos), np.concatenate(item), np.concatenate(elem)
         self.cov = np.concatenate(cov)
         self.origin = self.pos.mean(axis=0)
-        self.tree = cKDTree(self.pos - self.origin)
-        self.max_var = float(np.linalg.eigvalsh(self.cov)[:, -1].max())
+        # One search radius from the largest reference variance would make every query gather the whole scene
+        # when a few grazing-angle ToF points have decimetre sigmas; tiers of similar variance (a factor of 4
+        # apart) keep each search radius tight while still finding every point whose ellipsoid reaches the query.
+        lam = np.linalg.eigvalsh(self.cov)[:, -1]
+        tier = np.floor(np.log(np.maximum(lam, 1e-30) / max(float(lam.min()), 1e-30)) / np.log(4.0)).astype(int)
+        self.tiers = []
+        for t in np.unique(tier):
+            members = np.flatnonzero(tier == t)
+            self.tiers.append((members, cKDTree(self.pos[members] - self.origin), float(lam[members].max())))
+        self.max_var = float(lam.max())
+
+    def neighbours(self, qpos: np.ndarray, lam_q: np.ndarray, chi2: float, pool: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """(query, reference) index pairs: per variance tier, the ``pool`` Euclidean-nearest within its 99 % bound.
+
+        A fixed-size pool keeps the search in C and its cost bounded where decimetre-long ToF ellipsoids reach
+        thousands of points; the Mahalanobis test after it is exact, and the mixture keeps the closest of these.
+        """
+        fq, fr = [], []
+        for members, tree, var in self.tiers:
+            k = min(pool, len(members))
+            radius = np.sqrt(chi2 * (lam_q + var))
+            dist, idx = tree.query(qpos - self.origin, k=k, distance_upper_bound=float(radius.max()))
+            dist, idx = dist.reshape(len(qpos), k), idx.reshape(len(qpos), k)
+            ok = dist <= radius[:, None]
+            fq.append(np.nonzero(ok)[0])
+            fr.append(members[idx[ok]])
+        if not fq:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.concatenate(fq), np.concatenate(fr)
 
 
 def point_to_point(qpos: np.ndarray, qcov: np.ndarray, ref: ReferencePoints, chi2: float, max_components: int,
                    element: np.ndarray) -> Candidates:
     """One mixture candidate per query that has reference points inside its combined 99 % ellipsoid."""
     lam_q = np.linalg.eigvalsh(qcov)[:, -1]
-    radius = np.sqrt(chi2 * (lam_q + ref.max_var))
-    lists = ref.tree.query_ball_point(qpos - ref.origin, radius, return_sorted=False)
-    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-    flat_r = np.fromiter((j for x in lists for j in x), dtype=np.int64, count=int(counts.sum()))
-    flat_q = np.repeat(np.arange(len(qpos)), counts)
+    flat_q, flat_r = ref.neighbours(qpos, lam_q, chi2, 4 * max_components)
     d = ref.pos[flat_r] - qpos[flat_q]
     m2 = quad_inv3(qcov[flat_q] + ref.cov[flat_r], d)
     keep = m2 <= chi2

@@ -21,7 +21,7 @@ Every function returns BC together with a per-pair error bound (0 for closed for
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import ndtr, ndtri
+from scipy.special import ndtr
 
 from gdt_pipeline import BoxUncertainty, GaussianUncertainty, MixtureUncertainty
 
@@ -80,8 +80,11 @@ def _gauss_legendre(order: int) -> tuple[np.ndarray, np.ndarray]:
 def _box_prob_genz(m: np.ndarray, c: np.ndarray, h: np.ndarray, order: int) -> np.ndarray:
     """P(−h ≤ X ≤ h), X ~ N(m, C), by sequential conditioning (Genz) with Gauss–Legendre in the outer two levels.
 
-    Variables are reordered per pair, most constrained (narrowest interval in standard deviations) first, which is
-    Genz's heuristic for a smoother integrand in the outer levels.
+    The outer levels integrate over the standardised variable z (density φ(z), interval cut at ±6 where each tail
+    holds 1e-9) rather than over u = Φ(z): in u the integrand has log singularities at the ends (z = Φ⁻¹(u)), so
+    the quadrature converged only algebraically (20 % of sub-millimetre Gaussians against a 2 mm box still off by
+    1e-5 at order 56), while in z it converges exponentially (1e-8 by order 20). Variables are reordered per pair,
+    narrowest interval in standard deviations first.
     """
     width = h / np.sqrt(np.diagonal(c, axis1=1, axis2=2))
     perm = np.argsort(width, axis=1)
@@ -95,21 +98,23 @@ def _box_prob_genz(m: np.ndarray, c: np.ndarray, h: np.ndarray, order: int) -> n
     for s in range(0, len(m), _CHUNK):
         L = chol[s:s + _CHUNK]
         a, b = lo[s:s + _CHUNK], hi[s:s + _CHUNK]
-        p1lo, p1hi = ndtr(a[:, 0] / L[:, 0, 0]), ndtr(b[:, 0] / L[:, 0, 0])
-        u1 = p1lo[:, None] + (p1hi - p1lo)[:, None] * t[None, :]  # (n, q)
-        z1 = ndtri(np.clip(u1, 1e-300, 1 - 1e-16))
-        a2 = (a[:, 1, None] - L[:, 1, 0, None] * z1) / L[:, 1, 1, None]
-        b2 = (b[:, 1, None] - L[:, 1, 0, None] * z1) / L[:, 1, 1, None]
-        p2lo, p2hi = ndtr(a2), ndtr(b2)
-        u2 = p2lo[..., None] + (p2hi - p2lo)[..., None] * t[None, None, :]  # (n, q, q)
-        z2 = ndtri(np.clip(u2, 1e-300, 1 - 1e-16))
+        lo1 = np.clip(a[:, 0] / L[:, 0, 0], -_Z_CUT, _Z_CUT)
+        hi1 = np.clip(b[:, 0] / L[:, 0, 0], -_Z_CUT, _Z_CUT)
+        z1 = lo1[:, None] + (hi1 - lo1)[:, None] * t[None, :]  # (n, q)
+        w1 = (hi1 - lo1)[:, None] * w[None, :] * _INV_SQRT_2PI * np.exp(-0.5 * z1 * z1)
+        lo2 = np.clip((a[:, 1, None] - L[:, 1, 0, None] * z1) / L[:, 1, 1, None], -_Z_CUT, _Z_CUT)
+        hi2 = np.clip((b[:, 1, None] - L[:, 1, 0, None] * z1) / L[:, 1, 1, None], -_Z_CUT, _Z_CUT)
+        z2 = lo2[..., None] + (hi2 - lo2)[..., None] * t[None, None, :]  # (n, q, q)
+        w2 = (hi2 - lo2)[..., None] * w[None, None, :] * _INV_SQRT_2PI * np.exp(-0.5 * z2 * z2)
         shift = L[:, 2, 0, None, None] * z1[..., None] + L[:, 2, 1, None, None] * z2
         a3 = (a[:, 2, None, None] - shift) / L[:, 2, 2, None, None]
         b3 = (b[:, 2, None, None] - shift) / L[:, 2, 2, None, None]
-        inner = _phi_diff(a3, b3)
-        level2 = (p2hi - p2lo) * np.einsum("nij,j->ni", inner, w)
-        out[s:s + _CHUNK] = (p1hi - p1lo) * (level2 @ w)
+        out[s:s + _CHUNK] = np.einsum("nq,nqr,nqr->n", w1, w2, _phi_diff(a3, b3))
     return out
+
+
+_Z_CUT = 6.0  # one tail beyond holds 1e-9: far below the 1e-6 tolerance on BC
+_INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 
 
 ORDERS = (10, 14, 20, 28, 40, 56)  # Gauss–Legendre orders tried in turn; the cost grows with order²

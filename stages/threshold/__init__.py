@@ -82,7 +82,7 @@ class CalibratedParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     false_alarm: float = Field(0.01, gt=0, lt=0.5, description="Share of unchanged elements allowed to be flagged.")
-    samples: PositiveInt = Field(200_000, description="Simulated unchanged pairs used to set τ (and again, "
+    samples: PositiveInt = Field(50_000, description="Simulated unchanged pairs used to set τ (and again, "
                                                       "independently, to check the rate achieved).")
 
 

@@ -22,6 +22,8 @@ bench: setup
 	$(BIN)/python bench/engine_throughput.py
 	$(BIN)/python bench/voxel_mle.py
 	$(BIN)/python bench/distances.py
+	$(BIN)/gdt eval workflows/test_scene.yaml --json out/eval/test_scene/result.json
+	$(BIN)/gdt eval workflows/fuselage.yaml --json out/eval/fuselage/result.json
 
 lint: setup
 	$(BIN)/ruff check .
@@ -40,7 +42,7 @@ system-deps:
 $(STAMP): pyproject.toml plugins/gdt-c2c/pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[dev]" -e plugins/gdt-c2c
+	$(BIN)/python -m pip install -q -e ".[dev,eval]" -e plugins/gdt-c2c
 	@touch $(STAMP)
 
 clean:

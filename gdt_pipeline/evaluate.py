@@ -367,7 +367,8 @@ def _removal(et: dict[str, Any], prev_sets: list, sets: dict, points: np.ndarray
 
     tree = cKDTree(points)
     removed_t, view_t, gdt_r, c2c_r = [], [], [], []
-    unmatched = []
+    unmatched: list[str] = []
+    per_object: dict[str, Any] = {}
     for name in names:
         key = next((es.key for es in prev_sets if es.key.endswith(f"_{_identifier('cad_' + name)}")
                     or es.key.endswith(f"_{_identifier(name)}")), None)
@@ -382,11 +383,16 @@ def _removal(et: dict[str, Any], prev_sets: list, sets: dict, points: np.ndarray
         centres = es.points[es.faces].mean(axis=1)
         d, _ = tree.query(centres, distance_upper_bound=C2C_TAU)
         c2c_r.append(~np.isfinite(d))
+        seen = removed_t[-1] & view_t[-1]
+        if seen.any():  # a removed object is found when most of what could be seen of it is marked removed
+            per_object[name] = {m: {"facets_seen": int(seen.sum()), "marked": int(f[seen].sum()),
+                                    "found": bool(f[seen].mean() >= 0.5)}
+                                for m, f in (("gdt", gdt_r[-1]), ("c2c_reverse", c2c_r[-1]))}
     if not removed_t:
         return {"note": f"no twin element set matches the truth objects {unmatched}"}
     rem, view = np.concatenate(removed_t), np.concatenate(view_t)
     out: dict[str, Any] = {"removed_facets": int(rem.sum()), "removed_in_view": int((rem & view).sum()),
-                           "occluded_facets": int((~view & ~rem).sum()), "methods": {}}
+                           "occluded_facets": int((~view & ~rem).sum()), "methods": {}, "objects": per_object}
     for label, flag in (("gdt", np.concatenate(gdt_r)), ("c2c_reverse", np.concatenate(c2c_r))):
         out["methods"][label] = {
             "recall": float(flag[rem & view].mean()) if (rem & view).any() else None,
@@ -483,6 +489,10 @@ def format_table(result: dict[str, Any]) -> str:
                 lines.append(f"{'':24}  removal {label:<12} recall {f(r['recall'])} (of {rem['removed_in_view']} "
                              f"visible removed facets), false removals on occluded "
                              f"{f(r['false_removal_rate_occluded'])} (of {rem['occluded_facets']})")
+        for name, per in (rem or {}).get("objects", {}).items():
+            found = ", ".join(f"{k}: {'found' if v['found'] else 'missed'} ({v['marked']}/{v['facets_seen']} visible "
+                              f"facets)" for k, v in per.items())
+            lines.append(f"{'':24}  removed {name}: {found}")
         for o in row.get("objects", []):
             if o["truth"] != "new" or "methods" not in o:
                 continue

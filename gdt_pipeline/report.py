@@ -149,6 +149,11 @@ def write_report(result: dict[str, Any], arrays: dict[str, Any], out_dir: Path) 
             for label, r in rem["methods"].items():
                 md.append(f"| {label} | {_f(r['recall'])} | {_f(r['false_removal_rate_occluded'])} | "
                           f"{_f(r['false_removal_rate_seen'])} |")
+            for name, per in rem.get("objects", {}).items():
+                md.append("")
+                md.append(f"removed {name}: " + ", ".join(
+                    f"{k} {'found' if v['found'] else 'missed'} ({v['marked']}/{v['facets_seen']} visible facets)"
+                    for k, v in per.items()))
             md += ["", rem.get("note", ""), ""]
         objects = [o for o in row.get("objects", []) if o.get("methods")]
         if objects:

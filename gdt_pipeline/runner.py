@@ -406,7 +406,9 @@ def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: P
                 "started": started, "finished": datetime.now(UTC).isoformat(timespec="seconds"),
                 "counts": composite.counts(), "epoch_key": upstream_epoch_key,
             }
-            layer = store.write_epoch(epoch.id, composite_to_elements(composite), provenance)
+            rov = slots.get("rov")
+            layer = store.write_epoch(epoch.id, composite_to_elements(composite), provenance,
+                                      None if rov is None else (rov.vertices, rov.faces))
             summary = EpochSummary(epoch.id, composite.counts(), time.perf_counter() - t_epoch,
                                    target / "epochs" / Path(layer).name)
             result.epochs.append(summary)

@@ -50,6 +50,7 @@ class SimulatedScan:
     sigma_range: np.ndarray
     sigma_lateral: np.ndarray
     registration_error: np.ndarray  # 4x4 applied to the noisy points (identity when none)
+    target: np.ndarray | None = None  # where the scanner looked (with the viewpoint and the spec: its frustum)
 
 
 def _rays(spec: ScannerSpec, eye: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -111,7 +112,7 @@ def simulate_scan(meshes: list, eye: np.ndarray, target: np.ndarray, spec: Scann
         noisy = noisy @ err[:3, :3].T + err[:3, 3]
     return SimulatedScan(points=noisy, clean=clean, object_id=ans["geometry_ids"].numpy()[hit].astype(np.int64),
                          facet_id=ans["primitive_ids"].numpy()[hit].astype(np.int64), viewpoint=eye,
-                         sigma_range=s_r, sigma_lateral=s_l, registration_error=err)
+                         sigma_range=s_r, sigma_lateral=s_l, registration_error=err, target=target)
 
 
 def write_scan(scan: SimulatedScan, path: Path, *, object_names: list[str], changed: np.ndarray | None = None,
@@ -138,6 +139,7 @@ def write_scan(scan: SimulatedScan, path: Path, *, object_names: list[str], chan
                  registration_error=scan.registration_error)
     pose = path.with_name(path.stem + "_pose.json")
     pose.write_text(json.dumps({"viewpoint": scan.viewpoint.tolist(), "points": len(scan.points),
+                                "target": None if scan.target is None else scan.target.tolist(), "up": [0.0, 0.0, 1.0],
                                 "registration_error": scan.registration_error.tolist(),
                                 "scanner": None if spec is None else spec.model_dump()}, indent=2) + "\n")
     return {"scan": path, "truth": truth, "pose": pose}

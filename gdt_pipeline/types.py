@@ -407,15 +407,26 @@ class Dataset:
 
 @dataclass(frozen=True)
 class RegionOfView:
-    """The space the sensors of an epoch measured: a closed triangle surface with a vectorised ``contains``."""
+    """The space the sensors of an epoch measured: closed triangle surfaces (their union; ``parts`` gives the facet
+    count of each closed part, default one part) with a vectorised ``contains``; and, once a region-of-view stage
+    has looked at the reference, per reference item which elements were in view (inside and not occluded) and which
+    of those the recent data matched."""
 
     vertices: np.ndarray
     faces: np.ndarray
+    parts: tuple[int, ...] = ()
+    in_view: dict[str, np.ndarray] = field(default_factory=dict)
+    matched: dict[str, np.ndarray] = field(default_factory=dict)
+    method: str = ""
 
     def __post_init__(self) -> None:
         verts = frozen_array(self.vertices, np.float64, (None, 3), "region of view vertices")
         object.__setattr__(self, "vertices", verts)
         object.__setattr__(self, "faces", frozen_array(self.faces, np.int64, (None, 3), "region of view faces"))
+        parts = tuple(int(p) for p in self.parts) or (len(self.faces),)
+        if sum(parts) != len(self.faces):
+            raise ValueError(f"region of view: parts {parts} do not add up to its {len(self.faces)} facets")
+        object.__setattr__(self, "parts", parts)
 
     @classmethod
     def box(cls, lower: np.ndarray | list[float], upper: np.ndarray | list[float]) -> RegionOfView:
@@ -430,14 +441,21 @@ class RegionOfView:
         return cls(mesh.vertices, mesh.faces)
 
     def contains(self, points: np.ndarray) -> np.ndarray:
-        """Boolean mask of the points strictly inside the closed surface (parity of ray intersections)."""
+        """Boolean mask of the points strictly inside any of the closed parts (parity of ray intersections each)."""
         import open3d as o3d  # imported here: open3d is heavy and only a region-of-view query needs it
 
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
-                            o3d.core.Tensor(self.faces.astype(np.uint32)))
-        pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
-        return scene.compute_occupancy(o3d.core.Tensor(pts)).numpy().astype(bool)
+        pts = o3d.core.Tensor(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        inside = np.zeros(pts.shape[0], dtype=bool)
+        start = 0
+        for n in self.parts:  # one scene per part: overlapping closed parts would cancel each other's parity
+            scene = o3d.t.geometry.RaycastingScene()
+            faces = self.faces[start:start + n]
+            used, local = np.unique(faces, return_inverse=True)
+            scene.add_triangles(o3d.core.Tensor(self.vertices[used].astype(np.float32)),
+                                o3d.core.Tensor(local.reshape(-1, 3).astype(np.uint32)))
+            inside |= scene.compute_occupancy(pts).numpy().astype(bool)
+            start += n
+        return inside
 
 
 @dataclass(frozen=True)
@@ -601,12 +619,15 @@ class Composite:
             raise ValueError(f"composite has duplicate item keys: {sorted(k for k in set(keys) if keys.count(k) > 1)}")
 
     def counts(self) -> dict[str, int]:
-        """Number of visible elements per change state name, over all items."""
+        """Number of visible elements per change state name, over all items; "removed" counts the hidden elements
+        marked removed."""
         out = {s.name.lower(): 0 for s in ChangeState}
         for it in self.items:
             codes = np.bincount(it.state[it.visible], minlength=len(ChangeState))
             for s in ChangeState:
                 out[s.name.lower()] += int(codes[s])
+            # removed elements leave the composite (hidden) but are what an epoch reports
+            out["removed"] += int(np.sum((it.state == ChangeState.REMOVED) & ~it.visible))
         return out
 
 

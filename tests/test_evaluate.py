@@ -61,6 +61,9 @@ def test_eval_scores_the_workflow_and_the_peers_against_the_truth(small_fuselage
     # the reverse C2C peer finds the removed bracket but also "removes" much of what no station saw
     assert removal["methods"]["c2c_reverse"]["recall"] == 1.0
     assert removal["methods"]["c2c_reverse"]["false_removal_rate_occluded"] > 0.3
+    # the region of view finds it too and keeps what no station saw (far fewer false removals)
+    assert removal["objects"]["bracket_removed"]["gdt"]["found"]
+    assert removal["methods"]["gdt"]["false_removal_rate_occluded"] < 0.1
     assert row["composite"]["p95_mm"] < 1.0  # the composite keeps the exact CAD where nothing changed
     text = format_table(result)
     assert "gdt (this workflow)" in text and "M3C2" in text and "bracket_new_1" in text

@@ -33,6 +33,7 @@ STATE_NAMES: tuple[str, ...] = ("unchanged", "new", "removed", "outside_rov")
 STATE_COLORS = np.array([[0.7, 0.7, 0.7], [0.1, 0.75, 0.2], [0.85, 0.1, 0.1], [0.3, 0.45, 0.9]], dtype=np.float32)
 ROOT_NAME = "twin.usda"
 EPOCH_DIR = "epochs"
+ROV_PRIM = "/RegionsOfView"
 TWIN_PRIM = "/Twin"
 
 _DOC_COV = "Per-element positional covariance, 6 floats per element in the order xx xy xz yy yz zz (twin units²)."
@@ -317,12 +318,15 @@ class TwinStore:
             _open_layer(Path(p))
         return Usd.Stage.Open(anon)
 
-    def write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict) -> Path:
-        """Write one epoch layer holding the composite after this epoch; return the layer path."""
+    def write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict,
+                    region_of_view: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
+        """Write one epoch layer holding the composite after this epoch (and the region of view its sensors
+        measured, as a guide mesh under /RegionsOfView) ; return the layer path."""
         with self.writing():
-            return self._write_epoch(epoch_id, elements, provenance)
+            return self._write_epoch(epoch_id, elements, provenance, region_of_view)
 
-    def _write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict) -> Path:
+    def _write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict,
+                     region_of_view: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
         if not Tf.IsValidIdentifier(epoch_id):
             raise TwinStoreError(f"epoch id {epoch_id!r} is not a valid identifier")
         existing = self.epochs()
@@ -347,6 +351,8 @@ class TwinStore:
                 self._override(stage, known[es.key], es, epoch_id)
             else:
                 self._define(stage, es)
+        if region_of_view is not None:
+            self._define_rov(stage, epoch_id, *region_of_view)
         layer.customLayerData = {"gdt": {"epoch": epoch_id, "state_names": Vt.StringArray(list(STATE_NAMES)),
                                          "provenance_json": json.dumps(provenance, sort_keys=True, default=str)}}
         target = self._epoch_file(epoch_id)
@@ -440,6 +446,35 @@ class TwinStore:
             imageable.MakeVisible()
         elif not hidden_now and not np.any(es.visible):
             imageable.MakeInvisible()
+
+    def _define_rov(self, stage: Usd.Stage, epoch_id: str, points: np.ndarray, faces: np.ndarray) -> None:
+        pts = np.asarray(points, dtype=np.float64)
+        fcs = np.asarray(faces, dtype=np.int32)
+        if pts.ndim != 2 or pts.shape[1:] != (3,) or fcs.ndim != 2 or fcs.shape[1:] != (3,) or \
+                (fcs.size and (fcs.min() < 0 or fcs.max() >= len(pts))):
+            raise TwinStoreError(f"epoch {epoch_id}: region of view must be (V,3) points and (F,3) faces into them")
+        geom = UsdGeom.Mesh.Define(stage, f"{ROV_PRIM}/{epoch_id}")
+        geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
+        geom.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(fcs), 3, dtype=np.int32)))
+        geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(fcs.reshape(-1)))
+        geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        geom.CreatePurposeAttr(UsdGeom.Tokens.guide)  # viewers show it on request, not as twin geometry
+        geom.CreateDisplayOpacityAttr(Vt.FloatArray([0.15]))
+        geom.GetPrim().SetDocumentation(f"Region of view of epoch {epoch_id}: what its sensors measured")
+
+    def read_region_of_view(self, epoch_id: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """The region of view stored with ``epoch_id`` (points, faces), or None when the epoch has none."""
+        epochs = self.epochs()
+        if epoch_id not in epochs:
+            raise TwinStoreError(f"{self._path}: no epoch {epoch_id!r} (epochs: {', '.join(epochs) or 'none'})")
+        stage = self._stage_upto(epochs[: epochs.index(epoch_id) + 1])
+        prim = stage.GetPrimAtPath(f"{ROV_PRIM}/{epoch_id}")
+        if not prim:
+            return None
+        geom = UsdGeom.Mesh(prim)
+        pts = np.asarray(geom.GetPointsAttr().Get(), dtype=np.float64)
+        faces = np.asarray(geom.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
+        return pts, faces
 
     def read_epoch(self, epoch_id: str) -> list[ElementSet]:
         """The composite as it was at ``epoch_id`` (only the layers up to it are composed)."""

@@ -3,7 +3,9 @@ unchanged new elements are kept in the twin's history but hidden (the known data
 
 Change states are per epoch: elements carried over from an earlier epoch go back to "unchanged" unless this epoch
 changes them; the first epoch is the baseline, so its elements are "unchanged" too. Removal needs the region of
-view and comes with that issue."""
+view: with a region-of-view stage in the chain, a reference element in view that no recent data matches is
+"removed" and leaves the composite (it stays in the history), and one outside the region of view is marked so and
+kept as it was (never removed)."""
 
 from __future__ import annotations
 
@@ -33,9 +35,18 @@ def _keep_unchanged(ctx: StageContext) -> dict[str, Any]:
     changes = {c.query: c for c in ctx.get("change") or []}
     epoch = ctx.epoch
     items: list[CompositeItem] = []
+    rov = ctx.get("rov")
     for it in reference.items:
         state = np.where(it.state == ChangeState.NEW, ChangeState.UNCHANGED, it.state).astype(np.uint8)
-        items.append(dataclasses.replace(it, state=state))
+        visible = it.visible
+        if rov is not None and it.key in rov.in_view:
+            view, matched = rov.in_view[it.key], rov.matched[it.key]
+            removed = view & ~matched & it.visible
+            state = np.where(state == ChangeState.OUTSIDE_ROV, ChangeState.UNCHANGED, state).astype(np.uint8)
+            state[it.visible & ~view] = ChangeState.OUTSIDE_ROV
+            state[removed] = ChangeState.REMOVED
+            visible = it.visible & ~removed
+        items.append(dataclasses.replace(it, state=state, visible=visible))
     for qi, ds in enumerate(ctx["recent"]):
         n = ds.n_elements
         ch = changes.get(qi)
@@ -57,7 +68,7 @@ def _keep_unchanged(ctx: StageContext) -> dict[str, Any]:
 @hookimpl
 def gdt_stages() -> list[StageSpec]:
     """The built-in fusions."""
-    return [StageSpec(name="keep_unchanged", family="fusion", version="1.0.0", params=KeepUnchangedParams,
-                      run=_keep_unchanged, requires=("recent",), optional=("reference", "change"),
+    return [StageSpec(name="keep_unchanged", family="fusion", version="1.1.0", params=KeepUnchangedParams,
+                      run=_keep_unchanged, requires=("recent",), optional=("reference", "change", "rov"),
                       provides=("composite",), check=_check,
                       description="Known data stays; changed new elements come in; unchanged new ones are hidden.")]

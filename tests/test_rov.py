@@ -1,0 +1,162 @@
+"""Region of view: frusta, Plane-of-Sight occlusion by parity, and removal versus "outside the region of view"."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from gdt_pipeline import ChangeState, Composite, CompositeItem, Dataset, EpochInfo, GaussianUncertainty, RegionOfView
+from gdt_pipeline.plugins import StageContext, load_registry
+
+
+@pytest.fixture(scope="module")
+def registry():
+    return load_registry()
+
+
+def _plane_mesh(x: float, half: float, n: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """An open (non-watertight) square mesh in the plane x = const, facing -x."""
+    g = np.linspace(-half, half, n + 1)
+    yy, zz = np.meshgrid(g, g, indexing="ij")
+    verts = np.column_stack([np.full(yy.size, x), yy.ravel(), zz.ravel()])
+    idx = np.arange(verts.shape[0]).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.vstack([np.column_stack([a, c, b]), np.column_stack([a, d, c])])
+    return verts, faces
+
+
+def _ctx(registry, stage: str, params: dict, recent: list[Dataset], reference: Composite, tmp_path) -> StageContext:
+    import logging
+
+    spec = registry.get(stage)
+    info = EpochInfo(id="E1", index=1, role="as-is", seed=0, workflow_dir=tmp_path, units="m")
+    slots = {"recent": recent, "reference": reference, "epoch": info}
+    return StageContext(stage=spec, params=spec.params(**params), slots=slots, epoch=info,
+                        rng=np.random.default_rng(0), seed=0, log=logging.getLogger("test"))
+
+
+def _item(key: str, mesh: trimesh.Trimesh) -> CompositeItem:
+    ds = Dataset(key, "as-designed", mesh.vertices, faces=mesh.faces)
+    n = len(mesh.faces)
+    return CompositeItem(key, ds, "E0", np.zeros(n, np.uint8), np.full(n, np.nan), np.zeros(n, np.int32),
+                         np.ones(n, bool))
+
+
+def _scan(points: np.ndarray, eye: np.ndarray, name: str = "scan") -> Dataset:
+    cov = np.broadcast_to(np.eye(3) * 1e-8, (len(points), 3, 3))
+    return Dataset(name, "as-is", points, viewpoints=eye[None, :]).with_uncertainty(GaussianUncertainty(cov))
+
+
+def _grid(x: float, y0: float, y1: float, z0: float, z1: float, step: float) -> np.ndarray:
+    y, z = np.meshgrid(np.arange(y0, y1, step), np.arange(z0, z1, step), indexing="ij")
+    return np.column_stack([np.full(y.size, x), y.ravel(), z.ravel()])
+
+
+def test_contains_is_the_union_of_overlapping_closed_parts() -> None:
+    a, b = trimesh.creation.box(extents=(2, 2, 2)), trimesh.creation.box(extents=(2, 2, 2))
+    b.apply_translation((1, 0, 0))
+    rov = RegionOfView(np.vstack([a.vertices, b.vertices]), np.vstack([a.faces, b.faces + len(a.vertices)]),
+                       (len(a.faces), len(b.faces)))
+    inside = rov.contains(np.array([[0.5, 0, 0], [-0.9, 0, 0], [1.9, 0, 0], [3.0, 0, 0]]))
+    # (0.5, 0, 0) lies in both boxes: one scene over both would call it outside by parity
+    assert inside.tolist() == [True, True, True, False]
+
+
+def test_removed_object_in_view_is_removed_and_an_object_hidden_behind_another_stays_outside(registry, tmp_path
+                                                                                             ) -> None:
+    eye = np.array([0.0, 0.0, 0.0])
+    # reference: a cube A that was removed (in front, in plain view) and a cube B hidden behind a wall W that the
+    # recent scan measured; B is gone too, but nobody could have seen that
+    cube_a = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    cube_a.apply_translation((1.5, -0.6, 0))
+    cube_b = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    cube_b.apply_translation((3.0, 0.6, 0))
+    back = trimesh.Trimesh(*_plane_mesh(4.0, 1.5), process=False)  # a backdrop that is still there
+    reference = Composite((_item("E0_a", cube_a), _item("E0_b", cube_b), _item("E0_back", back)))
+    # recent: a wall at x = 2 in front of B (non-watertight: an open point grid) and the backdrop
+    wall = _grid(2.0, 0.2, 1.0, -0.4, 0.4, 0.01)
+    backdrop = _grid(4.0, -1.5, 1.5, -1.5, 1.5, 0.02)
+    backdrop = backdrop[~((backdrop[:, 1] > 0.2 * 2) & (np.abs(backdrop[:, 2]) < 0.4 * 2))]  # the wall's shadow
+    scan = _scan(np.vstack([wall, backdrop]), eye)
+    ctx = _ctx(registry, "manual_box", {"lower": [0.5, -2, -2], "upper": [5, 2, 2]}, [scan], reference, tmp_path)
+    rov = registry.get("manual_box").run(ctx)["rov"]
+    view_a, view_b = rov.in_view["E0_a"], rov.in_view["E0_b"]
+    facing = np.einsum("ij,ij->i", cube_a.face_normals, eye - cube_a.triangles_center) > 0  # look at the sensor
+    assert view_a[facing].all() and not view_a[~facing].any()
+    assert not view_b.any()  # behind the wall: occluded (one crossing of the wall's measured surface)
+    assert not rov.matched["E0_a"][view_a].any()
+    assert rov.matched["E0_back"][rov.in_view["E0_back"]].mean() > 0.95
+    fusion = registry.get("keep_unchanged")
+    fctx = _ctx(registry, "keep_unchanged", {}, [scan], reference, tmp_path)
+    fctx.slots["rov"] = rov
+    fctx.slots["change"] = []
+    # the fusion demands a change per recent dataset once a reference exists: give the scan "unchanged"
+    from gdt_pipeline import Change
+
+    n = scan.n_elements
+    fctx.slots["change"] = [Change(query=0, score=np.zeros(n), mask=np.zeros(n, bool),
+                                   state=np.zeros(n, np.uint8))]
+    items = {it.key: it for it in fusion.run(fctx)["composite"].items}
+    assert np.all(items["E0_a"].state[facing] == ChangeState.REMOVED)
+    assert not items["E0_a"].visible[facing].any()
+    assert np.all(items["E0_b"].state == ChangeState.OUTSIDE_ROV) and items["E0_b"].visible.all()
+
+
+def test_parity_on_a_non_watertight_mesh_and_two_disconnected_components(registry, tmp_path) -> None:
+    eye = np.array([0.0, 0.0, 0.0])
+    target = trimesh.Trimesh(*_plane_mesh(5.0, 0.5, 4), process=False)
+    reference = Composite((_item("E0_t", target),))
+    for layers, hidden in (((2.0,), True), ((2.0, 3.0), False)):
+        # recent data: one or two open sheets between the sensor and the target (as meshes: no reconstruction)
+        recent = []
+        for k, x in enumerate(layers):
+            v, f = _plane_mesh(x, 1.0)
+            recent.append(Dataset(f"sheet{k}", "as-is", v, faces=f, viewpoints=eye[None, :]).with_uncertainty(
+                GaussianUncertainty(np.broadcast_to(np.eye(3) * 1e-8, (len(f), 3, 3)))))
+        ctx = _ctx(registry, "manual_box", {"lower": [0.5, -2, -2], "upper": [6, 2, 2]}, recent, reference, tmp_path)
+        view = registry.get("manual_box").run(ctx)["rov"].in_view["E0_t"]
+        # one crossing: odd, hidden; two disconnected sheets: even, in view by the paper's parity rule
+        assert (not view.any()) if hidden else view.all()
+        ctx = _ctx(registry, "manual_box", {"lower": [0.5, -2, -2], "upper": [6, 2, 2], "rule": "any"}, recent,
+                   reference, tmp_path)
+        assert not registry.get("manual_box").run(ctx)["rov"].in_view["E0_t"].any()
+
+
+def test_sensor_frustum_from_the_pose_file(registry, tmp_path) -> None:
+    import json
+
+    from gdt_pipeline.types import SourceInfo
+
+    eye, target = np.array([0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    (tmp_path / "s_pose.json").write_text(json.dumps({"viewpoint": eye.tolist(), "target": target.tolist(),
+                                                      "scanner": {"kind": "pinhole", "fov_deg": 60.0,
+                                                                  "aspect": 2.0, "max_range": 5.0}}))
+    scan = _scan(_grid(3.0, -0.5, 0.5, -0.3, 0.3, 0.02), eye)
+    scan = Dataset(scan.name, "as-is", scan.points, source=SourceInfo(path="s.ply", sha256=""),
+                   uncertainty=scan.uncertainty, viewpoints=scan.viewpoints)
+    ctx = _ctx(registry, "sensor_frustum", {"occlusion": False}, [scan], Composite(), tmp_path)
+    rov = registry.get("sensor_frustum").run(ctx)["rov"]
+    # horizontal half-angle 30°, vertical atan(tan 30° / 2) = 16.1°, range 0.05 .. 5
+    pts = np.array([[4.0, 4.0 * np.tan(np.radians(29)), 0], [4.0, 4.0 * np.tan(np.radians(31)), 0],
+                    [4.0, 0, 4.0 * np.tan(np.radians(15.5))], [4.0, 0, 4.0 * np.tan(np.radians(16.7))],
+                    [4.9, 0, 0], [5.1, 0, 0], [-1.0, 0, 0]])
+    assert rov.contains(pts).tolist() == [True, False, True, False, True, False, False]
+
+
+def test_the_region_of_view_is_stored_with_its_epoch_and_read_back_with_pxr(tmp_path) -> None:
+    from pxr import Usd, UsdGeom
+
+    from twin_store import TwinStore
+
+    box = RegionOfView.box([0, 0, 0], [1, 2, 3])
+    store = TwinStore.create(tmp_path / "twin")
+    store.write_epoch("E0", [], {"note": "no elements"}, region_of_view=(box.vertices, box.faces))
+    store.write_epoch("E1", [], {"note": "no region"})
+    pts, faces = store.read_region_of_view("E0")
+    np.testing.assert_allclose(pts, box.vertices, atol=1e-6)
+    np.testing.assert_array_equal(faces, box.faces)
+    stage = Usd.Stage.Open(str(tmp_path / "twin" / "twin.usda"))
+    prim = stage.GetPrimAtPath("/RegionsOfView/E0")
+    assert prim and UsdGeom.Imageable(prim).GetPurposeAttr().Get() == UsdGeom.Tokens.guide
+    assert store.read_region_of_view("E1") is None or store.read_region_of_view("E1")[0].shape == (0, 3)

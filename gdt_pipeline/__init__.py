@@ -20,6 +20,7 @@ from .types import (
     RegionOfView,
     Registration,
     Scores,
+    Segment,
     SourceInfo,
     Uncertainty,
 )
@@ -48,6 +49,7 @@ __all__ = [
     "RegionOfView",
     "Registration",
     "Scores",
+    "Segment",
     "SourceInfo",
     "StageContext",
     "StageError",

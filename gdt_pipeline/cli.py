@@ -322,10 +322,13 @@ def simulate(meshes: tuple[Path, ...], stations: tuple[str, ...], target: str, p
               help="Peers to run side by side (comma list of c2c, m3c2, m3c2ep; 'none' for none).")
 @click.option("--generate/--no-generate", default=True, show_default=True,
               help="Generate a bundled scene (seed 0) when the workflow's data is missing.")
+@click.option("--fusion", type=click.Choice(["most_reliable", "keep_unchanged", "keep_reference", "replace_in_view"]),
+              help="Run with this fusion policy instead of the workflow's (twin: <twin>_<fusion>), to compare "
+                   "the composites.")
 def eval_cmd(workflow: Path, twin: Path | None, json_path: Path | None, report_dir: Path | None, peers: str,
-             generate: bool) -> None:
+             generate: bool, fusion: str | None) -> None:
     """Run WORKFLOW on a simulated scene and score every epoch against the scene's ground truth, with the peers."""
-    from .evaluate import PEERS, evaluate, format_table, missing_scene
+    from .evaluate import PEERS, evaluate, format_table, missing_scene, with_fusion
 
     chosen = () if peers.strip() == "none" else tuple(p.strip() for p in peers.split(",") if p.strip())
     unknown = [p for p in chosen if p not in PEERS]
@@ -340,8 +343,15 @@ def eval_cmd(workflow: Path, twin: Path | None, json_path: Path | None, report_d
                                        ("" if name is None else f"; generate it: gdt scene {name} {out_dir}"))
         err_console.print(f"generating the {name} scene into {out_dir} (seed 0) ...")
         make_scene(name, out_dir, 0)
-    result, arrays = evaluate(workflow, twin=twin, registry=registry, peers=chosen,
-                              progress=lambda m: err_console.print(m))
+    variant = with_fusion(workflow, fusion) if fusion else None
+    try:
+        result, arrays = evaluate(variant or workflow, twin=twin, registry=registry, peers=chosen,
+                                  progress=lambda m: err_console.print(m))
+    finally:
+        if variant is not None:
+            variant.unlink(missing_ok=True)
+    if fusion:
+        result["fusion_override"] = fusion
     click.echo(format_table(result))
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
@@ -349,7 +359,7 @@ def eval_cmd(workflow: Path, twin: Path | None, json_path: Path | None, report_d
         click.echo(f"results written to {json_path}")
     from .report import write_report
 
-    out = report_dir or Path("out") / "eval" / workflow.stem
+    out = report_dir or Path("out") / "eval" / (workflow.stem + (f"_{fusion}" if fusion else ""))
     click.echo(f"report: {write_report(result, arrays, out)}")
 
 

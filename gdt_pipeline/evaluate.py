@@ -277,6 +277,8 @@ def _evaluate_epoch(wf: Any, store: TwinStore, prev_id: str, epoch: Any, registr
     if epoch_truth is not None:
         row["removal"] = _removal(epoch_truth, prev_sets, sets, points, reference)
         row["objects"] = _objects(epoch_truth, methods, points, truth)
+        row["segments"] = _segment_objects(store.read_segments(epoch.id), epoch_truth, truth, prev_sets,
+                                           row["objects"])
         row["composite"] = _composite_distance(scene_dir, epoch_truth, list(sets.values()), rng)
     else:
         row["removal"], row["objects"], row["composite"] = None, [], None
@@ -454,6 +456,42 @@ def _objects(et: dict[str, Any], methods: dict, points: np.ndarray, truth: _Scan
     return out
 
 
+def _segment_objects(segments: list[dict], et: dict[str, Any], truth: _ScanTruth, prev_sets: list,
+                     objects: list[dict[str, Any]]) -> dict[str, Any]:
+    """The twin's own segments scored as objects: each new object's best segment (found when mostly on it and
+    holding half its points; centroid error to the noise-free centroid of its scanned surface), and removed objects
+    found as removed segments."""
+    offsets = np.cumsum([0] + [len(c) for c in truth.changed])
+    where = {k: int(o) for k, o in zip(truth.keys, offsets[:-1], strict=True)}
+    obj, clean = truth.cat("object"), np.vstack(truth.clean)
+    new_segs = [g for g in segments if g["kind"] == "new" and not g["artefact"]]
+    seg_points = [np.concatenate([where[k] + v for k, v in g["members"].items() if k in where] or [np.zeros(0, int)])
+                  for g in new_segs]
+    out: dict[str, Any] = {"new_segments": len(new_segs), "artefacts": sum(g["artefact"] for g in segments),
+                           "removed_segments": sum(g["kind"] == "removed" and not g["artefact"] for g in segments)}
+    for o in objects:
+        if o["truth"] != "new" or not o.get("points"):
+            continue
+        on = obj == o["name"]
+        best = max(range(len(new_segs)), key=lambda i: int(on[seg_points[i]].sum()), default=None)
+        found, err = False, None
+        if best is not None and on[seg_points[best]].any():
+            pts = seg_points[best]
+            found = bool(on[pts].mean() > 0.5 and on[pts].sum() >= 0.5 * on.sum())
+            err = float(np.linalg.norm(new_segs[best]["centroid"] - clean[on].mean(axis=0)) * 1000)
+        o.setdefault("methods", {})["gdt_segments"] = {"found": found,
+                                                       "centre_error_mm": None if err is None else round(err, 2)}
+    removed_names = [n for n, st in et.get("objects", {}).items() if st == "removed"]
+    out["removed_found"] = {}
+    for name in removed_names:
+        keys = [es.key for es in prev_sets if es.key.endswith(f"_{_identifier('cad_' + name)}")
+                or es.key.endswith(f"_{_identifier(name)}")]
+        hits = [g for g in segments if g["kind"] == "removed" and not g["artefact"] and
+                any(k in g["members"] for k in keys)]
+        out["removed_found"][name] = len(hits)
+    return out
+
+
 def _composite_distance(scene_dir: Path, et: dict[str, Any], sets: list, rng: np.random.Generator
                         ) -> dict[str, Any] | None:
     """Distance from the composite (visible elements; meshes sampled) to the true as-is surfaces, in mm."""
@@ -500,6 +538,10 @@ def format_table(result: dict[str, Any]) -> str:
                               + (f" {v['centre_error_mm']:.1f} mm" if v["found"] else "")
                               for k, v in o["methods"].items())
             lines.append(f"{'':24}  new {o['name']} ({o['points']} pts): {found}")
+        if row.get("segments"):
+            g = row["segments"]
+            lines.append(f"{'':24}  twin segments: {g['new_segments']} new, {g['removed_segments']} removed, "
+                         f"{g['artefacts']} artefacts; removed objects as removed segments: {g['removed_found']}")
         if row.get("composite"):
             c = row["composite"]
             lines.append(f"{'':24}  composite to true as-is geometry: mean {c['mean_mm']:.2f} mm, "
@@ -509,6 +551,26 @@ def format_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def with_fusion(workflow: str | Path, fusion: str) -> Path:
+    """A copy of the workflow, beside it (so its relative paths hold), whose fusion stage is ``fusion`` and whose
+    twin goes to ``<twin>_<fusion>``: to compare fusion policies on the same data. The caller deletes it."""
+    import yaml
+
+    path = Path(workflow)
+    doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    stages = [s for s in doc.get("stages", []) if s.get("uses") in FUSIONS]
+    if not stages:
+        raise ValueError(f"{path}: no fusion stage to replace (one of {', '.join(FUSIONS)})")
+    for st in stages:
+        st["uses"] = fusion
+        st.pop("with", None)  # the policies' own parameters differ; the segmentation defaults hold
+    doc["twin"] = f"{doc.get('twin', 'twin')}_{fusion}"
+    out = path.with_name(f".{path.stem}.{fusion}.yaml")
+    out.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+    return out
+
+
+FUSIONS = ("most_reliable", "keep_unchanged", "keep_reference", "replace_in_view")
 SCENE_DIRS = {"paper_test_scene": "paper-test-scene", "fuselage": "fuselage", "test_scene": "test-scene"}
 
 

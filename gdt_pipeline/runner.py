@@ -407,8 +407,9 @@ def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: P
                 "counts": composite.counts(), "epoch_key": upstream_epoch_key,
             }
             rov = slots.get("rov")
+            segments = [dataclasses.asdict(g) for g in composite.segments]
             layer = store.write_epoch(epoch.id, composite_to_elements(composite), provenance,
-                                      None if rov is None else (rov.vertices, rov.faces))
+                                      None if rov is None else (rov.vertices, rov.faces), segments)
             summary = EpochSummary(epoch.id, composite.counts(), time.perf_counter() - t_epoch,
                                    target / "epochs" / Path(layer).name)
             result.epochs.append(summary)

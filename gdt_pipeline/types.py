@@ -607,13 +607,33 @@ class CompositeItem:
 
 
 @dataclass(frozen=True)
+class Segment:
+    """A connected group of the elements an epoch marked new (or removed): one added (or removed) object, so that
+    "bracket added at (x, y, z)" is a query. ``members`` maps item keys to element indices; segments smaller than
+    the fusion's minimum are kept and flagged ``artefact``, never dropped."""
+
+    id: int
+    kind: Literal["new", "removed"]
+    centroid: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    mean_score: float
+    size: int
+    artefact: bool
+    members: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class Composite:
-    """The composite 3D image after an epoch: every item the twin holds, visible or hidden."""
+    """The composite 3D image after an epoch: every item the twin holds, visible or hidden, and the segments of
+    what this epoch changed."""
 
     items: tuple[CompositeItem, ...] = ()
+    segments: tuple[Segment, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "items", tuple(self.items))
+        object.__setattr__(self, "segments", tuple(self.segments))
         keys = [it.key for it in self.items]
         if len(set(keys)) != len(keys):
             raise ValueError(f"composite has duplicate item keys: {sorted(k for k in set(keys) if keys.count(k) > 1)}")

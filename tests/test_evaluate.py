@@ -94,3 +94,16 @@ def test_missing_scene_names_the_generator(tmp_path: Path) -> None:
     path = tmp_path / "w.yaml"
     path.write_text(yaml.safe_dump(wf))
     assert missing_scene(path) == ("fuselage", tmp_path / "fuselage")
+
+
+def test_fusion_override_writes_a_variant_beside_the_workflow(small_fuselage: Path) -> None:
+    from gdt_pipeline.evaluate import with_fusion
+
+    variant = with_fusion(small_fuselage, "replace_in_view")
+    try:
+        doc = yaml.safe_load(variant.read_text())
+        assert variant.parent == small_fuselage.parent
+        assert [s["uses"] for s in doc["stages"]][-1] == "replace_in_view"
+        assert doc["twin"].endswith("_replace_in_view")
+    finally:
+        variant.unlink()

@@ -34,6 +34,7 @@ STATE_COLORS = np.array([[0.7, 0.7, 0.7], [0.1, 0.75, 0.2], [0.85, 0.1, 0.1], [0
 ROOT_NAME = "twin.usda"
 EPOCH_DIR = "epochs"
 ROV_PRIM = "/RegionsOfView"
+SEGMENTS_PRIM = "/Segments"
 TWIN_PRIM = "/Twin"
 
 _DOC_COV = "Per-element positional covariance, 6 floats per element in the order xx xy xz yy yz zz (twin units²)."
@@ -319,14 +320,16 @@ class TwinStore:
         return Usd.Stage.Open(anon)
 
     def write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict,
-                    region_of_view: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
+                    region_of_view: tuple[np.ndarray, np.ndarray] | None = None,
+                    segments: Sequence[dict] = ()) -> Path:
         """Write one epoch layer holding the composite after this epoch (and the region of view its sensors
         measured, as a guide mesh under /RegionsOfView) ; return the layer path."""
         with self.writing():
-            return self._write_epoch(epoch_id, elements, provenance, region_of_view)
+            return self._write_epoch(epoch_id, elements, provenance, region_of_view, segments)
 
     def _write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict,
-                     region_of_view: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
+                     region_of_view: tuple[np.ndarray, np.ndarray] | None = None,
+                     segments: Sequence[dict] = ()) -> Path:
         if not Tf.IsValidIdentifier(epoch_id):
             raise TwinStoreError(f"epoch id {epoch_id!r} is not a valid identifier")
         existing = self.epochs()
@@ -353,6 +356,8 @@ class TwinStore:
                 self._define(stage, es)
         if region_of_view is not None:
             self._define_rov(stage, epoch_id, *region_of_view)
+        for seg in segments:
+            self._define_segment(stage, epoch_id, seg)
         layer.customLayerData = {"gdt": {"epoch": epoch_id, "state_names": Vt.StringArray(list(STATE_NAMES)),
                                          "provenance_json": json.dumps(provenance, sort_keys=True, default=str)}}
         target = self._epoch_file(epoch_id)
@@ -461,6 +466,44 @@ class TwinStore:
         geom.CreatePurposeAttr(UsdGeom.Tokens.guide)  # viewers show it on request, not as twin geometry
         geom.CreateDisplayOpacityAttr(Vt.FloatArray([0.15]))
         geom.GetPrim().SetDocumentation(f"Region of view of epoch {epoch_id}: what its sensors measured")
+
+    def _define_segment(self, stage: Usd.Stage, epoch_id: str, seg: dict) -> None:
+        """One segment as a typeless prim with its figures; members as one int array per element set."""
+        prim = stage.DefinePrim(f"{SEGMENTS_PRIM}/{epoch_id}/seg_{int(seg['id']):04d}")
+        attrs = {"gdt:kind": (Sdf.ValueTypeNames.Token, seg["kind"]),
+                 "gdt:centroid": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg["centroid"]))),
+                 "gdt:lower": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg["lower"]))),
+                 "gdt:upper": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg["upper"]))),
+                 "gdt:meanScore": (Sdf.ValueTypeNames.Double, float(seg["mean_score"])),
+                 "gdt:elementCount": (Sdf.ValueTypeNames.Int, int(seg["size"])),
+                 "gdt:artefact": (Sdf.ValueTypeNames.Bool, bool(seg["artefact"]))}
+        for name, (tname, value) in attrs.items():
+            prim.CreateAttribute(name, tname).Set(value)
+        for key, idx in seg["members"].items():
+            if not Tf.IsValidIdentifier(key):
+                raise TwinStoreError(f"segment member set {key!r} is not a valid identifier")
+            prim.CreateAttribute(f"gdt:members:{key}", Sdf.ValueTypeNames.Int64Array).Set(
+                Vt.Int64Array.FromNumpy(np.asarray(idx, dtype=np.int64)))
+
+    def read_segments(self, epoch_id: str) -> list[dict]:
+        """The segments (connected changed elements) an epoch recorded, as dicts, in id order."""
+        epochs = self.epochs()
+        if epoch_id not in epochs:
+            raise TwinStoreError(f"{self._path}: no epoch {epoch_id!r} (epochs: {', '.join(epochs) or 'none'})")
+        stage = self._stage_upto(epochs[: epochs.index(epoch_id) + 1])
+        root = stage.GetPrimAtPath(f"{SEGMENTS_PRIM}/{epoch_id}")
+        out = []
+        for prim in (root.GetChildren() if root else []):
+            values = {a.GetName(): a.Get() for a in prim.GetAttributes()}
+            get = values.get
+            members = {a.GetName()[len("gdt:members:"):]: np.asarray(a.Get(), dtype=np.int64)
+                       for a in prim.GetAttributes() if a.GetName().startswith("gdt:members:")}
+            out.append({"id": int(prim.GetName()[4:]), "kind": str(get("gdt:kind")),
+                        "centroid": np.array(get("gdt:centroid")), "lower": np.array(get("gdt:lower")),
+                        "upper": np.array(get("gdt:upper")), "mean_score": float(get("gdt:meanScore")),
+                        "size": int(get("gdt:elementCount")), "artefact": bool(get("gdt:artefact")),
+                        "members": members})
+        return sorted(out, key=lambda d: d["id"])
 
     def read_region_of_view(self, epoch_id: str) -> tuple[np.ndarray, np.ndarray] | None:
         """The region of view stored with ``epoch_id`` (points, faces), or None when the epoch has none."""

@@ -1,5 +1,15 @@
-"""Fusion. Here ``keep_unchanged``: the known data stays, the changed elements of the new data come in, and the
-unchanged new elements are kept in the twin's history but hidden (the known data already images them).
+"""Fusion: the composite 3D image after each epoch.
+
+- ``keep_unchanged`` (also under the name ``keep_reference``): the known data stays, the changed elements of the new
+  data come in, and the unchanged new elements are kept in the twin's history but hidden (the known data already
+  images them);
+- ``most_reliable``: as keep_unchanged, except where the new data images unchanged, measured (as-is) geometry inside
+  its region of view with a smaller uncertainty (√det Σ, the volume of its error ellipsoid) than the known data:
+  there the new data replaces the old (the paper's E2 replacing E1). Design (CAD) geometry stays the design unless
+  ``replace_design``;
+- ``replace_in_view``: the newest data always replaces what it images inside the region of view.
+
+Replaced elements are hidden, not dropped; the numbers of the rule go into the epoch's report.
 
 Change states are per epoch: elements carried over from an earlier epoch go back to "unchanged" unless this epoch
 changes them; the first epoch is the baseline, so its elements are "unchanged" too. Removal needs the region of
@@ -13,15 +23,37 @@ import dataclasses
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
 
-from gdt_pipeline import ChangeState, Composite, CompositeItem, StageContext, StageSpec, hookimpl
+from gdt_pipeline import ChangeState, Composite, CompositeItem, Segment, StageContext, StageSpec, hookimpl
 
 
-class KeepUnchangedParams(BaseModel):
-    """``keep_unchanged`` has no parameters."""
+class SegmentParams(BaseModel):
+    """How changed elements are grouped into objects (every fusion)."""
 
     model_config = ConfigDict(extra="forbid")
+    segment_radius: float | None = Field(None, gt=0, description="Elements closer than this are one object "
+                                                                 "(default: 3 × their typical spacing, at least "
+                                                                 "1.5σ of their largest axis).")
+    min_segment_size: int = Field(10, ge=1, description="Segments with fewer elements are reported as artefacts.")
+
+
+class KeepUnchangedParams(SegmentParams):
+    """``keep_unchanged``: only the segmentation parameters."""
+
+
+class MostReliableParams(SegmentParams):
+    """When new data replaces the known data."""
+
+    replace_design: bool = Field(False, description="Let precise measurements replace as-designed (CAD) elements "
+                                                    "too (default: the design stays where it is confirmed).")
+    ratio: float = Field(1.0, gt=0, le=1, description="New data must have √det Σ below this share of the known "
+                                                      "data's.")
+
+
+class ReplaceInViewParams(SegmentParams):
+    """``replace_in_view``: only the segmentation parameters."""
 
 
 def _check(available: frozenset[str]) -> str | None:
@@ -31,11 +63,149 @@ def _check(available: frozenset[str]) -> str | None:
 
 
 def _keep_unchanged(ctx: StageContext) -> dict[str, Any]:
+    return _fuse(ctx, None)
+
+
+def _most_reliable(ctx: StageContext) -> dict[str, Any]:
+    return _fuse(ctx, "most_reliable")
+
+
+def _replace_in_view(ctx: StageContext) -> dict[str, Any]:
+    return _fuse(ctx, "replace_in_view")
+
+
+def _volume(cov: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.maximum(np.linalg.det(cov), 0.0))
+
+
+def _replacements(ctx: StageContext, items: list[CompositeItem], policy: str) -> tuple[dict, dict]:
+    """Which reference elements the unchanged recent elements replace: {item index: mask}, {recent index: mask}."""
+    rov = ctx.get("rov")
+    if rov is None:
+        raise ValueError(f"fusion {policy!r} needs a region-of-view stage before it (sensor_frustum or manual_box): "
+                         f"new data replaces old only where its region of view encloses the old")
+    changes = {c.query: c for c in ctx.get("change") or []}
+    pos, owner, elem = [], [], []
+    for i, it in enumerate(items):
+        view = rov.in_view.get(it.key)
+        if view is None:
+            continue
+        ok = view & it.visible
+        if policy == "most_reliable" and it.dataset.role == "as-designed" and not ctx.params.replace_design:
+            ok = np.zeros_like(ok)
+        idx = np.flatnonzero(ok)
+        pos.append(it.dataset.element_positions()[idx])
+        owner.append(np.full(idx.size, i))
+        elem.append(idx)
+    replaced = {i: np.zeros(it.dataset.n_elements, bool) for i, it in enumerate(items)}
+    taking = {}
+    if not pos or not sum(len(p) for p in pos):
+        return replaced, taking
+    pos_a, owner_a, elem_a = np.vstack(pos), np.concatenate(owner), np.concatenate(elem)
+    tree = cKDTree(pos_a)
+    ref_gap = float(np.median(tree.query(pos_a, k=2)[0][:, 1])) if len(pos_a) > 1 else 0.0
+    own = np.zeros(len(pos_a))
+    for i in np.unique(owner_a):
+        it = items[i]
+        if it.dataset.uncertainty is not None:
+            sel = owner_a == i
+            own[sel] = 3.0 * np.sqrt(np.linalg.eigvalsh(it.dataset.element_covariance()[elem_a[sel]])[:, -1])
+    vol_cache: dict[int, np.ndarray] = {}
+    takers: list[np.ndarray] = []
+    for qi, ds in enumerate(ctx["recent"]):
+        ch = changes.get(qi)
+        if ch is None or ds.uncertainty is None:
+            continue
+        cand = np.flatnonzero(ch.state == ChangeState.UNCHANGED)
+        if not cand.size:
+            continue
+        rpos = ds.element_positions()[cand]
+        spacing = 3.0 * np.sqrt(np.linalg.eigvalsh(ds.element_covariance()[cand])[:, -1])
+        d, j = tree.query(rpos)
+        # an unchanged recent element images its nearest in-view reference element when it lies within 3σ of
+        # either's largest axis or twice the reference's spacing (a sparse noisy reference is farther away than the
+        # precise σ)
+        near = d <= np.maximum(np.maximum(spacing, own[j]), 2.0 * ref_gap)
+        take = near.copy()
+        if policy == "most_reliable":
+            v_new = _volume(ds.element_covariance()[cand])
+            v_old = np.full(len(cand), np.inf)
+            for i in np.unique(owner_a[j[near]]):
+                if i not in vol_cache:
+                    it = items[i]
+                    vol_cache[i] = _volume(it.dataset.element_covariance()) if it.dataset.uncertainty is not None \
+                        else np.full(it.dataset.n_elements, np.inf)
+                sel = near & (owner_a[j] == i)
+                v_old[sel] = vol_cache[i][elem_a[j[sel]]]
+            take &= v_new < ctx.params.ratio * v_old
+        mask = np.zeros(ds.n_elements, bool)
+        mask[cand[take]] = True
+        taking[qi] = mask
+        takers.append(rpos[take])
+    if not takers or not sum(len(t) for t in takers):
+        return replaced, taking
+    # every known element the taking data images goes, not only the nearest of each: a reference element within
+    # 3σ of its own largest axis (or 3 × the typical gap) of taking data is replaced
+    dist, _ = cKDTree(np.vstack(takers)).query(pos_a)
+    hit = dist <= np.maximum(own, 2.0 * ref_gap)
+    for i in np.unique(owner_a[hit]):
+        sel = hit & (owner_a == i)
+        replaced[i][elem_a[sel]] = True
+    return replaced, taking
+
+
+def _segments(items: list[CompositeItem], masks: dict[int, np.ndarray], kind: str, params: SegmentParams,
+              start_id: int) -> list[Segment]:
+    """Connected groups (radius graph) of the masked elements over all items."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pos, owner, elem, score, sig = [], [], [], [], []
+    for i, mask in masks.items():
+        idx = np.flatnonzero(mask)
+        if not idx.size:
+            continue
+        ds = items[i].dataset
+        pos.append(ds.element_positions()[idx])
+        owner.append(np.full(idx.size, i))
+        elem.append(idx)
+        score.append(items[i].score[idx])
+        sig.append(np.sqrt(np.linalg.eigvalsh(ds.element_covariance()[idx])[:, -1]) if ds.uncertainty is not None
+                   else np.zeros(idx.size))
+    if not pos:
+        return []
+    pos_a, owner_a, elem_a = np.vstack(pos), np.concatenate(owner), np.concatenate(elem)
+    score_a, sig_a = np.concatenate(score), np.concatenate(sig)
+    tree = cKDTree(pos_a)
+    radius = params.segment_radius
+    if radius is None:
+        gap = tree.query(pos_a, k=2)[0][:, 1] if len(pos_a) > 1 else np.zeros(1)
+        radius = max(3.0 * float(np.median(gap)), 1.5 * float(np.median(sig_a)), 1e-9)
+    pairs = tree.query_pairs(radius, output_type="ndarray")
+    n = len(pos_a)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
+        coo_matrix((n, n))
+    _, label = connected_components(graph, directed=False)
+    order = np.argsort(label, kind="stable")
+    bounds = np.flatnonzero(np.diff(label[order])) + 1
+    out = []
+    groups = sorted(np.split(order, bounds), key=lambda g: (-len(g), int(g.min())))  # largest first, stable ids
+    for k, g in enumerate(groups):
+        members = {items[i].key: np.sort(elem_a[g][owner_a[g] == i]) for i in np.unique(owner_a[g])}
+        finite = score_a[g][np.isfinite(score_a[g])]
+        out.append(Segment(id=start_id + k, kind=kind, centroid=pos_a[g].mean(axis=0), lower=pos_a[g].min(axis=0),
+                           upper=pos_a[g].max(axis=0), mean_score=float(finite.mean()) if finite.size else float("nan"),
+                           size=len(g), artefact=len(g) < params.min_segment_size, members=members))
+    return out
+
+
+def _fuse(ctx: StageContext, policy: str | None) -> dict[str, Any]:
     reference = ctx.get("reference") or Composite()
     changes = {c.query: c for c in ctx.get("change") or []}
     epoch = ctx.epoch
     items: list[CompositeItem] = []
     rov = ctx.get("rov")
+    removed_now: dict[int, np.ndarray] = {}
     for it in reference.items:
         state = np.where(it.state == ChangeState.NEW, ChangeState.UNCHANGED, it.state).astype(np.uint8)
         visible = it.visible
@@ -46,7 +216,20 @@ def _keep_unchanged(ctx: StageContext) -> dict[str, Any]:
             state[it.visible & ~view] = ChangeState.OUTSIDE_ROV
             state[removed] = ChangeState.REMOVED
             visible = it.visible & ~removed
+            removed_now[len(items)] = removed
         items.append(dataclasses.replace(it, state=state, visible=visible))
+    taking: dict[int, np.ndarray] = {}
+    if policy is not None and reference.items:
+        replaced, taking = _replacements(ctx, items, policy)
+        counts = {}
+        for i, mask in replaced.items():
+            if mask.any():
+                items[i] = dataclasses.replace(items[i], visible=items[i].visible & ~mask)
+                counts[items[i].key] = int(mask.sum())
+        ctx.report(fusion={"policy": policy, "replaced": counts,
+                           "taking_over": {ctx["recent"][q].name: int(m.sum()) for q, m in taking.items()},
+                           "rule": "unchanged recent element in view replaces its nearest known element" +
+                                   (" when its √det Σ is smaller" if policy == "most_reliable" else "")})
     for qi, ds in enumerate(ctx["recent"]):
         n = ds.n_elements
         ch = changes.get(qi)
@@ -59,16 +242,35 @@ def _keep_unchanged(ctx: StageContext) -> dict[str, Any]:
             score = np.full(n, np.nan)
         else:
             visible, state, score, p_value = ch.mask, ch.state, ch.score, ch.p_value
+            if qi in taking:
+                visible = visible | taking[qi]
         items.append(CompositeItem(key=f"{epoch.id}_{ds.name}", dataset=ds, epoch=epoch.id, state=state, score=score,
                                    source_epoch=np.full(n, epoch.index, dtype=np.int32), visible=visible,
                                    p_value=p_value))
-    return {"composite": Composite(tuple(items))}
+    n_ref = len(reference.items)
+    new_masks = {n_ref + qi: (items[n_ref + qi].state == ChangeState.NEW) & items[n_ref + qi].visible
+                 for qi in range(len(ctx["recent"])) if reference.items}
+    segments = _segments(items, new_masks, "new", ctx.params, 0)
+    segments += _segments(items, removed_now, "removed", ctx.params, len(segments))
+    if segments:
+        real = [g for g in segments if not g.artefact]
+        ctx.report(segments={"new": sum(g.kind == "new" for g in real),
+                             "removed": sum(g.kind == "removed" for g in real), "artefacts": len(segments) - len(real)})
+    return {"composite": Composite(tuple(items), tuple(segments))}
 
 
 @hookimpl
 def gdt_stages() -> list[StageSpec]:
     """The built-in fusions."""
-    return [StageSpec(name="keep_unchanged", family="fusion", version="1.1.0", params=KeepUnchangedParams,
-                      run=_keep_unchanged, requires=("recent",), optional=("reference", "change", "rov"),
-                      provides=("composite",), check=_check,
-                      description="Known data stays; changed new elements come in; unchanged new ones are hidden.")]
+    common = {"family": "fusion", "version": "1.1.0", "requires": ("recent",),
+              "optional": ("reference", "change", "rov"), "provides": ("composite",), "check": _check}
+    keep = "Known data stays; changed new elements come in; unchanged new ones are hidden."
+    return [StageSpec(name="keep_unchanged", params=KeepUnchangedParams, run=_keep_unchanged, description=keep,
+                      **common),
+            StageSpec(name="keep_reference", params=KeepUnchangedParams, run=_keep_unchanged,
+                      description=keep + " (the same as keep_unchanged)", **common),
+            StageSpec(name="most_reliable", params=MostReliableParams, run=_most_reliable,
+                      description="As keep_unchanged, but more precise new data replaces measured data in view.",
+                      **common),
+            StageSpec(name="replace_in_view", params=ReplaceInViewParams, run=_replace_in_view,
+                      description="The newest data replaces what it images inside the region of view.", **common)]

@@ -1,0 +1,145 @@
+"""Fusion policies (which data the composite keeps) and the segments of what an epoch changed."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from gdt_pipeline import (
+    BoxUncertainty,
+    Change,
+    Composite,
+    CompositeItem,
+    Dataset,
+    EpochInfo,
+    GaussianUncertainty,
+    RegionOfView,
+)
+from gdt_pipeline.plugins import StageContext, load_registry
+
+
+@pytest.fixture(scope="module")
+def registry():
+    return load_registry()
+
+
+def _plane(x0: float, n: int, rng: np.random.Generator, sigma: float) -> np.ndarray:
+    p = np.column_stack([rng.uniform(x0, x0 + 1, n), rng.uniform(0, 1, n), np.zeros(n)])
+    p[:, 2] += rng.normal(0, sigma, n)
+    return p
+
+
+def _gauss(points: np.ndarray, sigma: float, name: str, role: str = "as-is") -> Dataset:
+    cov = np.broadcast_to(np.eye(3) * sigma**2, (len(points), 3, 3))
+    return Dataset(name, role, points).with_uncertainty(GaussianUncertainty(cov))
+
+
+def _item(ds: Dataset, epoch: str) -> CompositeItem:
+    n = ds.n_elements
+    return CompositeItem(f"{epoch}_{ds.name}", ds, epoch, np.zeros(n, np.uint8), np.zeros(n), np.zeros(n, np.int32),
+                         np.ones(n, bool))
+
+
+def _run(registry, name: str, reference: Composite, recent: list[Dataset], changes: list[Change], **params):
+    spec = registry.get(name)
+    info = EpochInfo(id="E2", index=2, role="as-is", seed=0, workflow_dir=".", units="m")
+    rov = RegionOfView.box([-1, -1, -1], [3, 2, 1])
+    rov = RegionOfView(rov.vertices, rov.faces, in_view={it.key: np.ones(it.dataset.n_elements, bool)
+                                                         for it in reference.items},
+                       matched={it.key: np.ones(it.dataset.n_elements, bool) for it in reference.items})
+    slots = {"recent": recent, "reference": reference, "change": changes, "rov": rov, "epoch": info}
+    ctx = StageContext(stage=spec, params=spec.params(**params), slots=slots, epoch=info,
+                       rng=np.random.default_rng(0), seed=0, log=logging.getLogger("test"))
+    return spec.run(ctx)["composite"], ctx.notes
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(0)
+    # known: a CAD plate (as-designed, ±1 mm box) on x in [0, 1] and a noisy earlier scan (1 cm) on x in [1, 2]
+    # (a 2 cm grid of facets: the fusion matches data to facet centroids, so a CAD's facets must not dwarf it)
+    g = np.linspace(0, 1, 51)
+    yy, xx = np.meshgrid(g, g, indexing="ij")
+    cad_pts = np.column_stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)])
+    idx = np.arange(cad_pts.shape[0]).reshape(51, 51)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    cad = Dataset("cad", "as-designed", cad_pts, faces=np.vstack([np.column_stack([a, b, c]),
+                                                                    np.column_stack([a, c, d])]))
+    cad = cad.with_uncertainty(BoxUncertainty(half_widths=np.array([[0.001, 0.001, 0.001]])))
+    tof = _gauss(_plane(1.0, 3000, rng, 0.01), 0.01, "tof")
+    reference = Composite((_item(cad, "E0"), _item(tof, "E1")))
+    # recent: a precise scan (0.1 mm) of both, unchanged
+    precise = _gauss(np.vstack([_plane(0.0, 3000, rng, 1e-4), _plane(1.0, 3000, rng, 1e-4)]), 1e-4, "sl")
+    n = precise.n_elements
+    change = Change(query=0, score=np.zeros(n), mask=np.zeros(n, bool), state=np.zeros(n, np.uint8))
+    return reference, precise, change
+
+
+def test_most_reliable_replaces_the_noisy_scan_and_keeps_the_design(registry, scene) -> None:
+    reference, precise, change = scene
+    comp, notes = _run(registry, "most_reliable", reference, [precise], [change])
+    items = {it.key: it for it in comp.items}
+    assert items["E0_cad"].visible.all()  # the design stays where the precise scan confirms it
+    # the 1 cm scan is replaced where the 0.1 mm scan images it; its points beyond ~3σ of the precise surface
+    # (about 1 %) are not imaged by it and stay
+    assert items["E1_tof"].visible.sum() <= 30
+    on_tof = precise.points[:, 0] > 1.0
+    sl = items["E2_sl"]
+    # the precise points on the old scan come in; on the CAD (away from the seam at x = 1) they stay hidden
+    assert sl.visible[on_tof].mean() > 0.99 and not sl.visible[precise.points[:, 0] < 0.95].any()
+    assert notes["fusion"]["replaced"]["E1_tof"] >= 2970
+    # replace_in_view takes the newest everywhere; keep_unchanged nowhere
+    comp, _ = _run(registry, "replace_in_view", reference, [precise], [change])
+    items = {it.key: it for it in comp.items}
+    assert items["E0_cad"].visible.mean() < 0.05 and items["E2_sl"].visible.mean() > 0.99
+    comp, _ = _run(registry, "keep_unchanged", reference, [precise], [change])
+    items = {it.key: it for it in comp.items}
+    assert items["E0_cad"].visible.all() and items["E1_tof"].visible.all() and not items["E2_sl"].visible.any()
+    with pytest.raises(ValueError, match="region-of-view"):
+        spec = registry.get("most_reliable")
+        info = EpochInfo(id="E2", index=2, role="as-is", seed=0, workflow_dir=".", units="m")
+        ctx = StageContext(stage=spec, params=spec.params(), epoch=info, rng=np.random.default_rng(0), seed=0,
+                           slots={"recent": [precise], "reference": reference, "change": [change], "epoch": info},
+                           log=logging.getLogger("test"))
+        spec.run(ctx)
+
+
+def test_new_elements_come_out_as_segments_with_artefacts_flagged(registry, scene) -> None:
+    reference, _, _ = scene
+    rng = np.random.default_rng(1)
+    blobs = [rng.normal(c, 0.01, (200, 3)) for c in ([0.3, 0.3, 0.2], [1.6, 0.7, 0.3])]
+    stray = np.array([[0.9, 0.9, 0.5], [1.9, 0.1, 0.6]])
+    pts = np.vstack([*blobs, stray])
+    new = _gauss(pts, 1e-3, "sl")
+    n = len(pts)
+    change = Change(query=0, score=np.full(n, 50.0), mask=np.ones(n, bool), state=np.full(n, 1, np.uint8))
+    comp, notes = _run(registry, "keep_unchanged", reference, [new], [change], min_segment_size=5,
+                        segment_radius=0.05)
+    real = [g for g in comp.segments if not g.artefact]
+    assert len(real) == 2 and sum(g.artefact for g in comp.segments) == 2
+    got = sorted(np.round(g.centroid, 2).tolist() for g in real)
+    want = sorted(np.round(b.mean(axis=0), 2).tolist() for b in blobs)
+    np.testing.assert_allclose(got, want, atol=0.01)
+    assert all(g.size == 200 and g.kind == "new" and g.mean_score == 50.0 for g in real)
+    assert sorted(len(v) for g in real for v in g.members.values()) == [200, 200]
+    assert notes["segments"] == {"new": 2, "removed": 0, "artefacts": 2}
+
+
+def test_segments_round_trip_through_the_twin(tmp_path) -> None:
+    from pxr import Usd
+
+    from twin_store import TwinStore
+
+    store = TwinStore.create(tmp_path / "twin")
+    seg = {"id": 3, "kind": "new", "centroid": [1.0, 2.0, 3.0], "lower": [0.5, 1.5, 2.5], "upper": [1.5, 2.5, 3.5],
+           "mean_score": 12.5, "size": 40, "artefact": False, "members": {"E1_scan": np.arange(40)}}
+    store.write_epoch("E1", [], {}, segments=[seg])
+    (back,) = store.read_segments("E1")
+    assert back["id"] == 3 and back["kind"] == "new" and back["size"] == 40 and not back["artefact"]
+    np.testing.assert_allclose(back["centroid"], [1, 2, 3])
+    np.testing.assert_array_equal(back["members"]["E1_scan"], np.arange(40))
+    stage = Usd.Stage.Open(str(tmp_path / "twin" / "twin.usda"))
+    prim = stage.GetPrimAtPath("/Segments/E1/seg_0003")
+    assert prim and prim.GetAttribute("gdt:meanScore").Get() == 12.5

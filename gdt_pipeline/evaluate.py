@@ -479,6 +479,10 @@ def _segment_objects(segments: list[dict], et: dict[str, Any], truth: _ScanTruth
             pts = seg_points[best]
             found = bool(on[pts].mean() > 0.5 and on[pts].sum() >= 0.5 * on.sum())
             err = float(np.linalg.norm(new_segs[best]["centroid"] - clean[on].mean(axis=0)) * 1000)
+            solid = et.get("centres", {}).get(o["name"])
+            if solid is not None:  # the part's own centre: a one-sided scan sees only the faces towards it
+                o["segment_to_solid_centre_mm"] = round(
+                    float(np.linalg.norm(new_segs[best]["centroid"] - np.asarray(solid)) * 1000), 2)
         o.setdefault("methods", {})["gdt_segments"] = {"found": found,
                                                        "centre_error_mm": None if err is None else round(err, 2)}
     removed_names = [n for n, st in et.get("objects", {}).items() if st == "removed"]
@@ -535,9 +539,11 @@ def format_table(result: dict[str, Any]) -> str:
             if o["truth"] != "new" or "methods" not in o:
                 continue
             found = ", ".join(f"{k}: {'found' if v['found'] else 'missed'}"
-                              + (f" {v['centre_error_mm']:.1f} mm" if v["found"] else "")
+                              + (f" {v['centre_error_mm']:.2f} mm" if v["found"] else "")
                               for k, v in o["methods"].items())
-            lines.append(f"{'':24}  new {o['name']} ({o['points']} pts): {found}")
+            solid = (f"; segment centroid to the part's solid centre {o['segment_to_solid_centre_mm']:.1f} mm"
+                     if o.get("segment_to_solid_centre_mm") is not None else "")
+            lines.append(f"{'':24}  new {o['name']} ({o['points']} pts): {found}{solid}")
         if row.get("segments"):
             g = row["segments"]
             lines.append(f"{'':24}  twin segments: {g['new_segments']} new, {g['removed_segments']} removed, "

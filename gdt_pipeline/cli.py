@@ -421,6 +421,8 @@ def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
                    "per element set), or .png (a picture of what a USD viewer shows).")
 def show(twin: Path, epoch: str | None, output: Path | None) -> None:
     """Show the twin as it was at an epoch, or write it to a file."""
+    from twin_store import REASON_NAMES
+
     from .export import export_twin
 
     store, epoch = _open_twin(twin, epoch)
@@ -429,13 +431,16 @@ def show(twin: Path, epoch: str | None, output: Path | None) -> None:
             click.echo(f"wrote {path}")
         return
     table = Table(title=f"{twin} at epoch {epoch}")
-    for col in ("element set", "kind", "elements", "visible", "visible by state"):
+    for col in ("element set", "kind", "elements", "visible", "visible by state", "fusion reason (all elements)"):
         table.add_column(col)
     for es in store.read_epoch(epoch):
         vis = es.visible.astype(bool)
         counts = {n: int(c) for n, c in zip(("unchanged", "new", "removed", "outside_rov"),
                                             np.bincount(es.state[vis], minlength=4), strict=True)}
-        table.add_row(es.key, es.kind, str(es.n_elements), str(int(vis.sum())), _counts_text(counts))
+        why = "-" if es.reason is None else ", ".join(
+            f"{int(c)} {REASON_NAMES[i].replace('_', ' ') if i < len(REASON_NAMES) else f'code {i}'}"
+            for i, c in enumerate(np.bincount(es.reason)) if c)
+        table.add_row(es.key, es.kind, str(es.n_elements), str(int(vis.sum())), _counts_text(counts), why)
     Console(width=max(120, out_console.width)).print(table)
 
 
@@ -470,6 +475,7 @@ def diff(twin: Path, epoch_a: str, epoch_b: str, as_json: bool) -> None:
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="File (or folder for ply).")
 def export(twin: Path, epoch: str | None, fmt: str, output: Path) -> None:
     """Export the twin at an epoch to PLY, OBJ or USD(Z)."""
+
     from .export import export_twin
 
     store, epoch = _open_twin(twin, epoch)

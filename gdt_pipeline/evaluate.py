@@ -483,6 +483,10 @@ def _segment_objects(segments: list[dict], et: dict[str, Any], truth: _ScanTruth
             if solid is not None:  # the part's own centre: a one-sided scan sees only the faces towards it
                 o["segment_to_solid_centre_mm"] = round(
                     float(np.linalg.norm(new_segs[best]["centroid"] - np.asarray(solid)) * 1000), 2)
+                if new_segs[best].get("part") is not None:  # the catalogue part the fusion fitted to the segment
+                    o["fitted_part"] = new_segs[best]["part"]
+                    o["fitted_centre_to_solid_centre_mm"] = round(
+                        float(np.linalg.norm(new_segs[best]["part_centre"] - np.asarray(solid)) * 1000), 2)
         o.setdefault("methods", {})["gdt_segments"] = {"found": found,
                                                        "centre_error_mm": None if err is None else round(err, 2)}
     removed_names = [n for n, st in et.get("objects", {}).items() if st == "removed"]
@@ -543,6 +547,11 @@ def format_table(result: dict[str, Any]) -> str:
                               for k, v in o["methods"].items())
             solid = (f"; segment centroid to the part's solid centre {o['segment_to_solid_centre_mm']:.1f} mm"
                      if o.get("segment_to_solid_centre_mm") is not None else "")
+            if o.get("fitted_part") is not None:
+                solid += (f"; fitted {o['fitted_part']!r} centre to the solid centre "
+                          f"{o['fitted_centre_to_solid_centre_mm']:.2f} mm")
+            elif o.get("segment_to_solid_centre_mm") is not None:
+                solid += "; no part fitted"
             lines.append(f"{'':24}  new {o['name']} ({o['points']} pts): {found}{solid}")
         if row.get("segments"):
             g = row["segments"]

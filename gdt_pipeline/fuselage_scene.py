@@ -4,8 +4,12 @@ brackets were added and one removed.
 Geometry (metres; fuselage axis along x, z up): a skin panel (radius 1.95 m, 1.6 m long, ±45° about +y, 3 mm
 thick), three frames (web and inner flange) at a 0.53 m pitch, seven stringers; brackets are small L-shaped parts
 riveted to the frame webs, where a cabin is attached. E0 is the CAD: skin, frames, stringers and two brackets.
-E1 is a structured-light scan (Artec Eva class, sub-millimetre noise) from six stations inside the cabin: one of
-the two CAD brackets was removed and five new ones were fitted.
+E1 is a structured-light scan (Artec Eva class, sub-millimetre noise) from six stations 0.9 m inside the cabin looking
+out at the skin; one of the two CAD brackets was removed and five new ones were fitted. With ``sweep`` the scan adds
+28 stations within the frame bays looking at the four bracket-carrying web faces from 0.5 m at 7 angles each (the
+way one scans brackets, which sit behind the frames' inner flanges, so that their models can be fitted).
+``part_bracket.obj`` is the bracket's catalogue model in its own frame (its solid centre at the origin), for the
+fusion's part fitting.
 
 Ground truth beside the scans: per point the object hit, its noise-free position and whether it is off the CAD
 by more than ``TOLERANCE``; per CAD facet whether it was removed and whether a station could see it; per object
@@ -125,8 +129,29 @@ def _station(x: float, angle_deg: float, standoff: float) -> tuple[np.ndarray, n
     return np.array([x, 0, 0]) + radial * (RADIUS - standoff), np.array([x, 0, 0]) + radial * RADIUS
 
 
-def make_fuselage_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: float = 30000.0
-                        ) -> dict[str, EpochFiles]:
+def _web_station(frame: int, side: int, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """A handheld station in the bay on ``side`` of a frame, 0.5 m along the axis from the web and 0.18 m inside the
+    skin, looking back at the web face where brackets sit: (eye, target)."""
+    a = np.radians(angle_deg)
+    radial = np.array([0.0, np.cos(a), np.sin(a)])
+    x = FRAMES_X[frame]
+    return np.array([x + side * 0.5, 0, 0]) + radial * (RADIUS - 0.18), np.array([x, 0, 0]) + radial * (RADIUS - 0.06)
+
+
+# the web faces that carry brackets: (frame index, side)
+BRACKET_WEBS = ((0, +1), (1, -1), (1, +1), (2, -1))
+WEB_ANGLES_DEG = (-36.0, -24.0, -12.0, 0.0, 12.0, 24.0, 36.0)
+
+
+def bracket_part():  # -> trimesh.Trimesh
+    """The bracket's catalogue model in its own frame: the solid's centre at the origin."""
+    mesh = _bracket(0, +1, 0.0)
+    mesh.apply_translation(-mesh.center_mass)
+    return mesh
+
+
+def make_fuselage_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: float = 30000.0,
+                        web_points_per_m2: float = 40000.0, sweep: bool = False) -> dict[str, EpochFiles]:
     """Write the fuselage scene's CAD (E0) and its precise scan (E1) with ground truth into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -143,14 +168,22 @@ def make_fuselage_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: fl
     now = [objects[n][0] for n in present]
     before = [objects[n][0] for n in cad_names]
     spec = ScannerSpec(profile="structured_light", points_per_m2=points_per_m2, fov_deg=60.0, max_range=3.0)
+    web_spec = spec.model_copy(update={"points_per_m2": web_points_per_m2})
     stations = [_station(x, deg, 0.9) for x in (0.53, 1.07) for deg in (-28.0, 0.0, 28.0)]
+    specs = [spec] * len(stations)
+    if sweep:
+        stations += [_web_station(f, side, deg) for f, side in BRACKET_WEBS for deg in WEB_ANGLES_DEG]
+        specs += [web_spec] * (len(stations) - len(specs))
+    (out / "part_bracket.obj").write_text(bracket_part().export(file_type="obj", include_normals=False,
+                                                                include_texture=False))
     ef = EpochFiles("E1")
     changed_all = []
-    for k, (eye, target) in enumerate(stations):
-        scan = simulate_scan(now, eye, target, spec, rng)
+    for k, ((eye, target), st_spec) in enumerate(zip(stations, specs, strict=True)):
+        scan = simulate_scan(now, eye, target, st_spec, rng)
         changed = _distance_to(before, scan.clean) > TOLERANCE
         changed_all.append(changed)
-        written = write_scan(scan, out / f"scan_E1_s{k}.ply", object_names=present, changed=changed, spec=spec)
+        written = write_scan(scan, out / f"scan_E1_s{k}.ply", object_names=present, changed=changed,
+                             spec=st_spec)
         ef.scans.append(written["scan"])
         ef.viewpoints.append(eye.tolist())
     states = {n: ("removed" if n == "bracket_removed" else "new" if objects[n][1] == "new" else "unchanged")
@@ -161,7 +194,7 @@ def make_fuselage_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: fl
     eyes = np.array([s[0] for s in stations])
     for n in cad_names:
         mesh = objects[n][0]
-        truth[f"in_view__{n}"] = _facets_in_view_multi(mesh, stations, now, spec)
+        truth[f"in_view__{n}"] = _facets_in_view_multi(mesh, stations, now, spec)  # frusta: same fov for all
         truth[f"removed__{n}"] = np.full(len(mesh.faces), n == "bracket_removed")
     path = out / "truth_E1.npz"
     with open(path, "wb") as fh:

@@ -42,5 +42,6 @@ def composite_to_elements(composite: Composite) -> list[ElementSet]:
                               covariance=cov, half_widths=hw, rotation=rot, uncertainty_summary=summary,
                               state=it.state, score=it.score.astype(np.float32), source_epoch=it.source_epoch,
                               visible=it.visible,
-                              p_value=None if it.p_value is None else it.p_value.astype(np.float32)))
+                              p_value=None if it.p_value is None else it.p_value.astype(np.float32),
+                              reason=it.reason, reason_ratio=it.reason_ratio.astype(np.float32)))
     return out

@@ -32,6 +32,22 @@ class ChangeState(enum.IntEnum):
     OUTSIDE_ROV = 3
 
 
+class FusionReason(enum.IntEnum):
+    """Why an element is (or is not) in the composite after an epoch's fusion; the codes are the ones stored in the
+    twin (``gdt:fusionReason``, names in ``twin_store.REASON_NAMES``)."""
+
+    BASELINE = 0
+    KEPT = 1
+    NEW = 2
+    REMOVED = 3
+    OUTSIDE_ROV = 4
+    REPLACED = 5
+    REPLACES = 6
+    KNOWN_MORE_PRECISE = 7
+    DESIGN_STAYS = 8
+    KNOWN_STAYS = 9
+
+
 def frozen_array(a: np.ndarray | list | tuple, dtype: type | np.dtype, ndim_shape: tuple[int | None, ...],
                  what: str) -> np.ndarray:
     """Return a read-only C-contiguous copy of ``a`` with the given dtype, checking its shape (None = any)."""
@@ -583,8 +599,9 @@ class CompositeItem:
     """One dataset held in the twin with its per-element state: what the twin stores as one prim.
 
     ``state`` (uint8 ChangeState codes), ``score`` (NaN = not scored), ``source_epoch`` (index of the epoch that
-    supplied each element) and ``visible`` (the element is part of the composite now; hidden elements stay in the
-    history) are all arrays over the dataset's elements.
+    supplied each element), ``visible`` (the element is part of the composite now; hidden elements stay in the
+    history), ``reason`` (uint8 FusionReason codes, default baseline) and ``reason_ratio`` (the fusion rule's
+    √det Σ ratio, NaN where none) are all arrays over the dataset's elements.
     """
 
     key: str
@@ -595,9 +612,15 @@ class CompositeItem:
     source_epoch: np.ndarray
     visible: np.ndarray
     p_value: np.ndarray | None = None
+    reason: np.ndarray | None = None
+    reason_ratio: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = self.dataset.n_elements
+        reason = np.zeros(n, np.uint8) if self.reason is None else self.reason
+        object.__setattr__(self, "reason", frozen_array(reason, np.uint8, (n,), f"{self.key}: fusion reason"))
+        ratio = np.full(n, np.nan) if self.reason_ratio is None else self.reason_ratio
+        object.__setattr__(self, "reason_ratio", frozen_array(ratio, np.float64, (n,), f"{self.key}: fusion ratio"))
         if self.p_value is not None:
             object.__setattr__(self, "p_value", frozen_array(self.p_value, np.float64, (n,), f"{self.key}: p-value"))
         object.__setattr__(self, "state", frozen_array(self.state, np.uint8, (n,), f"{self.key}: state"))
@@ -610,7 +633,8 @@ class CompositeItem:
 class Segment:
     """A connected group of the elements an epoch marked new (or removed): one added (or removed) object, so that
     "bracket added at (x, y, z)" is a query. ``members`` maps item keys to element indices; segments smaller than
-    the fusion's minimum are kept and flagged ``artefact``, never dropped."""
+    the fusion's minimum are kept and flagged ``artefact``, never dropped. ``part_centre`` is the centre of the
+    catalogue part fitted to the segment, when one fits unambiguously (``centroid`` is that of what was measured)."""
 
     id: int
     kind: Literal["new", "removed"]
@@ -621,6 +645,13 @@ class Segment:
     size: int
     artefact: bool
     members: dict[str, np.ndarray] = field(default_factory=dict)
+    # a catalogue part fitted to the segment (fusion ``parts``): its name, pose (4x4, part frame to twin), the fitted
+    # model's centre, the fit's RMS point-to-surface distance and the share of elements on the model
+    part: str | None = None
+    part_pose: np.ndarray | None = None
+    part_centre: np.ndarray | None = None
+    fit_rms: float = float("nan")
+    fit_fitness: float = float("nan")
 
 
 @dataclass(frozen=True)

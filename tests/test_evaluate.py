@@ -31,6 +31,8 @@ def small_fuselage(tmp_path_factory) -> Path:
     for stage in wf["stages"]:
         if stage["uses"] == "calibrated_threshold":
             stage["with"]["samples"] = 5000
+        for part in stage.get("with", {}).get("parts", []):
+            part["path"] = str(data / Path(part["path"]).name)
     path = root / "fuselage.yaml"
     path.write_text(yaml.safe_dump(wf, sort_keys=False))
     return path

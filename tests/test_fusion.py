@@ -140,6 +140,115 @@ def test_segments_round_trip_through_the_twin(tmp_path) -> None:
     assert back["id"] == 3 and back["kind"] == "new" and back["size"] == 40 and not back["artefact"]
     np.testing.assert_allclose(back["centroid"], [1, 2, 3])
     np.testing.assert_array_equal(back["members"]["E1_scan"], np.arange(40))
-    stage = Usd.Stage.Open(str(tmp_path / "twin" / "twin.usda"))
+    stage = Usd.Stage.Open(str(tmp_path / "twin" / "twin.usda"))  # held: a prim dies with its stage
     prim = stage.GetPrimAtPath("/Segments/E1/seg_0003")
     assert prim and prim.GetAttribute("gdt:meanScore").Get() == 12.5
+
+
+def test_each_element_records_why_it_is_in_the_composite_and_the_twin_keeps_it(registry, scene, tmp_path) -> None:
+    from pxr import Usd, UsdGeom
+
+    from gdt_pipeline import FusionReason
+    from gdt_pipeline.twin import composite_to_elements
+    from twin_store import REASON_NAMES, TwinStore
+
+    reference, precise, change = scene
+    comp, notes = _run(registry, "most_reliable", reference, [precise], [change])
+    items = {it.key: it for it in comp.items}
+    tof, sl, cad = items["E1_tof"], items["E2_sl"], items["E0_cad"]
+    on_tof = precise.points[:, 0] > 1.05
+    on_cad = precise.points[:, 0] < 0.95
+    # the 1 cm scan went because the 0.1 mm scan is more precise: √det Σ ratio (1e-4 / 1e-2)³ = 1e-6
+    gone = tof.reason == FusionReason.REPLACED
+    assert np.array_equal(gone, ~tof.visible) and gone.sum() >= 2970
+    np.testing.assert_allclose(tof.reason_ratio[gone], 1e-6, rtol=1e-9)
+    assert np.isnan(tof.reason_ratio[~gone]).all() and (tof.reason[~gone] == FusionReason.KEPT).all()
+    assert (sl.reason[on_tof] == FusionReason.REPLACES).mean() > 0.99
+    np.testing.assert_allclose(sl.reason_ratio[on_tof & (sl.reason == FusionReason.REPLACES)], 1e-6, rtol=1e-9)
+    assert (sl.reason[on_cad] == FusionReason.DESIGN_STAYS).all() and (cad.reason == FusionReason.KEPT).all()
+    assert notes["reasons"]["replaced"] == gone.sum()
+    # keep_unchanged: the known data stays, the precise scan is hidden by policy
+    comp_k, _ = _run(registry, "keep_unchanged", reference, [precise], [change])
+    assert (comp_k.items[-1].reason == FusionReason.KNOWN_STAYS).all()
+    # the reasons and ratios are per-element primvars of the epoch layer, read back by pxr and by the store
+    store = TwinStore.create(tmp_path / "twin")
+    store.write_epoch("E2", composite_to_elements(comp), {})
+    stage = Usd.Stage.Open(str(tmp_path / "twin" / "twin.usda"))  # held: a prim dies with its stage
+    prim = stage.GetPrimAtPath("/Twin/E1_tof")
+    codes = np.asarray(UsdGeom.PrimvarsAPI(prim).GetPrimvar("gdt:fusionReason").Get())
+    assert np.array_equal(codes, tof.reason) and REASON_NAMES[FusionReason.REPLACED] == "replaced"
+    back = {es.key: es for es in store.read_epoch("E2")}
+    np.testing.assert_array_equal(back["E2_sl"].reason, sl.reason)
+    np.testing.assert_allclose(back["E1_tof"].reason_ratio, tof.reason_ratio.astype(np.float32))
+    assert all(name.upper() == FusionReason(i).name for i, name in enumerate(REASON_NAMES))
+
+
+def _bracket_scan(sweep: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Structured-light points on one new bracket of the fuselage scene: from the six overview stations, or with the
+    handheld sweep along its web; and the bracket's solid centre."""
+    from gdt_pipeline.fuselage_scene import (
+        WEB_ANGLES_DEG,
+        _station,
+        _web_station,
+        fuselage_objects,
+    )
+    from gdt_pipeline.simulate import ScannerSpec, simulate_scan
+
+    objects = fuselage_objects()
+    present = [n for n in objects if n != "bracket_removed"]
+    meshes = [objects[n][0] for n in present]
+    stations = [_station(x, deg, 0.9) for x in (0.53, 1.07) for deg in (-28.0, 0.0, 28.0)]
+    if sweep:
+        stations += [_web_station(1, +1, deg) for deg in WEB_ANGLES_DEG]  # bracket_new_3 sits at frame 1, side +1
+    spec = ScannerSpec(profile="structured_light", points_per_m2=40000.0, fov_deg=60.0, max_range=3.0)
+    rng = np.random.default_rng(3)
+    k = present.index("bracket_new_3")
+    pts = []
+    for eye, target in stations:
+        scan = simulate_scan(meshes, eye, target, spec, rng)
+        pts.append(scan.points[scan.object_id == k])
+    return np.vstack(pts), objects["bracket_new_3"][0].center_mass
+
+
+def test_a_catalogue_part_fitted_to_a_new_segment_gives_its_centre(registry, scene, tmp_path) -> None:
+    from pathlib import Path
+
+    from gdt_pipeline.fuselage_scene import bracket_part
+    from stages.fusion.parts import fit_part, load_part
+    from twin_store import TwinStore
+
+    part_path = Path(tmp_path / "bracket.obj")
+    bracket_part().export(part_path)
+    part = load_part("bracket", part_path, None, seed=0)
+    np.testing.assert_allclose(part.centre, 0.0, atol=1e-9)
+    swept, centre = _bracket_scan(sweep=True)
+    fit = fit_part(swept, part, np.random.default_rng(0))
+    # the model fitted to a sweep that sees the bracket's plate, leg and ends gives its solid centre to < 1 mm
+    assert fit.accepted and not fit.ambiguous and fit.rms < 3e-4 and fit.fitness > 0.99
+    assert np.linalg.norm(fit.centre - centre) < 1e-3
+    assert np.linalg.norm(swept.mean(axis=0) - centre) > 3e-3  # what was measured is not the part's centre
+    # six stations 0.9 m away see one face: the model fits in several places as well, and the fit says so
+    one_sided, _ = _bracket_scan(sweep=False)
+    fit = fit_part(one_sided, part, np.random.default_rng(0))
+    assert fit.ambiguous and not fit.accepted and fit.rms < 3e-4
+    # through the fusion stage: the segment records the part, and the twin keeps it
+    reference, _, _ = scene
+    new = _gauss(swept, 1e-4, "sl")
+    n = new.n_elements
+    change = Change(query=0, score=np.full(n, 50.0), mask=np.ones(n, bool), state=np.full(n, 1, np.uint8))
+    comp, notes = _run(registry, "keep_unchanged", reference, [new], [change],
+                       parts=[{"name": "bracket", "path": str(part_path)}], segment_radius=0.01)
+    (seg,) = [g for g in comp.segments if not g.artefact]
+    assert seg.part == "bracket" and np.linalg.norm(seg.part_centre - centre) < 1e-3 and seg.fit_rms < 3e-4
+    assert notes["parts"]["segments"][0]["fitted"] == "bracket"
+    assert len(notes["parts"]["models"]["bracket"]["sha256"]) == 64
+    import dataclasses
+
+    store = TwinStore.create(tmp_path / "twin")
+    store.write_epoch("E2", [], {}, segments=[dataclasses.asdict(g) for g in comp.segments])
+    back = next(g for g in store.read_segments("E2") if not g["artefact"])
+    assert back["part"] == "bracket" and back["fit_rms"] == pytest.approx(seg.fit_rms)
+    np.testing.assert_allclose(back["part_centre"], seg.part_centre)
+    np.testing.assert_allclose(back["part_pose"], seg.part_pose)
+    with pytest.raises(ValueError, match="no model file"):
+        _run(registry, "keep_unchanged", reference, [new], [change], parts=[{"name": "x", "path": "/nope.obj"}])

@@ -54,6 +54,11 @@ def test_log_and_diff(three_epochs: Path, cube_scene: CubeScene) -> None:
     assert [r["epoch"] for r in json.loads(res.stdout)] == ["E0", "E1", "E2"]
     res = run_gdt("log", str(three_epochs))
     assert res.returncode == 0 and "E2" in res.stdout and "as-is" in res.stdout
+    # the E2 scan repeats E1: everything of it stays hidden because the known data stays (keep_unchanged)
+    e2 = {es.key: es for es in store.read_epoch("E2")}
+    assert (e2["E2_again"].reason == 9).all() and not e2["E2_again"].visible.any()
+    res = run_gdt("show", str(three_epochs), "--epoch", "E2")
+    assert res.returncode == 0 and f"{e2['E2_again'].n_elements} known stays" in res.stdout
     bad = run_gdt("diff", str(three_epochs), "E1", "E9")
     assert bad.returncode == 1 and "no epoch 'E9'" in bad.stderr and "Traceback" not in bad.stderr
 

@@ -3,6 +3,7 @@
 Depends on numpy and pxr only."""
 
 from .store import (
+    REASON_NAMES,
     STATE_COLORS,
     STATE_NAMES,
     ElementSet,
@@ -15,6 +16,7 @@ from .store import (
 )
 
 __all__ = [
+    "REASON_NAMES",
     "STATE_COLORS",
     "STATE_NAMES",
     "ElementSet",

@@ -38,6 +38,21 @@ SEGMENTS_PRIM = "/Segments"
 TWIN_PRIM = "/Twin"
 
 _DOC_COV = "Per-element positional covariance, 6 floats per element in the order xx xy xz yy yz zz (twin units²)."
+# why an element is (or is not) in the composite after an epoch's fusion; the codes are gdt:fusionReason
+REASON_NAMES: tuple[str, ...] = (
+    "baseline",            # 0: the element came with the first epoch (or no fusion decided about it)
+    "kept",                # 1: known element, still in the composite
+    "new",                 # 2: changed element of the epoch's data, came in
+    "removed",             # 3: known element in the region of view that no recent data matches: hidden
+    "outside_rov",         # 4: known element outside the region of view: kept as it was
+    "replaced",            # 5: known element imaged by more precise (or, by policy, newer) data: hidden
+    "replaces",            # 6: unchanged recent element that took the place of known data
+    "known_more_precise",  # 7: unchanged recent element hidden: the known data it images is as precise or better
+    "design_stays",        # 8: unchanged recent element hidden: it images design (CAD) geometry, which stays
+    "known_stays",         # 9: unchanged recent element hidden: the policy keeps known data (or it images none)
+)
+_DOC_REASON = ("Per-element fusion reason code: " + ", ".join(f"{i}={n}" for i, n in enumerate(REASON_NAMES))
+               + ". Hidden elements keep the reason they left with.")
 _DOC_STATE = "Per-element change state code: " + ", ".join(f"{i}={n}" for i, n in enumerate(STATE_NAMES)) + "."
 
 
@@ -68,6 +83,8 @@ class ElementSet:
     ids: np.ndarray | None = None
     display_color: np.ndarray | None = None  # (E,3) in 0..1; default: baked from the change state
     p_value: np.ndarray | None = None  # (E,) p-value of the change test, where the measure has one
+    reason: np.ndarray | None = None  # (E,) uint8 fusion reason code (REASON_NAMES)
+    reason_ratio: np.ndarray | None = None  # (E,) the numbers behind the reason: √det Σ new / known, NaN if none
 
     def __post_init__(self) -> None:
         if not Tf.IsValidIdentifier(self.key):
@@ -89,7 +106,7 @@ class ElementSet:
             n = len(pts)
         shapes = {"uncertainty_summary": (n,), "state": (n,), "score": (n,), "source_epoch": (n,), "visible": (n,),
                   "covariance": (n, 6), "half_widths": (n, 3), "rotation": (n, 3, 3), "ids": (n,),
-                  "display_color": (n, 3), "p_value": (n,)}
+                  "display_color": (n, 3), "p_value": (n,), "reason": (n,), "reason_ratio": (n,)}
         for name, shape in shapes.items():
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
@@ -204,6 +221,15 @@ def _values(es: ElementSet) -> dict[str, tuple[Any, Any, np.ndarray, int, str | 
     if es.p_value is not None:
         out["gdt:pValue"] = (Sdf.ValueTypeNames.FloatArray, interp, np.asarray(es.p_value, dtype=np.float32), 1,
                              "p-value of the change test per element (NaN where not tested).")
+    if es.reason is not None:
+        out["gdt:fusionReason"] = (Sdf.ValueTypeNames.UCharArray, interp, np.asarray(es.reason, dtype=np.uint8), 1,
+                                   _DOC_REASON)
+    if es.reason_ratio is not None:
+        out["gdt:fusionRatio"] = (Sdf.ValueTypeNames.FloatArray, interp,
+                                  np.asarray(es.reason_ratio, dtype=np.float32), 1,
+                                  "The fusion rule's number per element: √det Σ of the new data over that of the "
+                                  "known data it was compared with (replaced, replaces, known_more_precise); NaN "
+                                  "where no comparison was made.")
     if es.rotation is not None:
         out["gdt:rotation"] = (Sdf.ValueTypeNames.FloatArray, interp,
                                np.asarray(es.rotation, dtype=np.float32).reshape(-1), 9,
@@ -359,6 +385,7 @@ class TwinStore:
         for seg in segments:
             self._define_segment(stage, epoch_id, seg)
         layer.customLayerData = {"gdt": {"epoch": epoch_id, "state_names": Vt.StringArray(list(STATE_NAMES)),
+                                         "reason_names": Vt.StringArray(list(REASON_NAMES)),
                                          "provenance_json": json.dumps(provenance, sort_keys=True, default=str)}}
         target = self._epoch_file(epoch_id)
         _export_atomic(layer, target)
@@ -477,6 +504,15 @@ class TwinStore:
                  "gdt:meanScore": (Sdf.ValueTypeNames.Double, float(seg["mean_score"])),
                  "gdt:elementCount": (Sdf.ValueTypeNames.Int, int(seg["size"])),
                  "gdt:artefact": (Sdf.ValueTypeNames.Bool, bool(seg["artefact"]))}
+        if seg.get("part") is not None:
+            attrs.update({
+                "gdt:part": (Sdf.ValueTypeNames.String, str(seg["part"])),
+                "gdt:partCentre": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg["part_centre"]))),
+                # row-major 4x4 acting on column vectors (not Gf.Matrix4d, which acts on row vectors)
+                "gdt:partPose": (Sdf.ValueTypeNames.DoubleArray,
+                                 Vt.DoubleArray.FromNumpy(np.asarray(seg["part_pose"], dtype=np.float64).ravel())),
+                "gdt:fitRms": (Sdf.ValueTypeNames.Double, float(seg["fit_rms"])),
+                "gdt:fitFitness": (Sdf.ValueTypeNames.Double, float(seg["fit_fitness"]))})
         for name, (tname, value) in attrs.items():
             prim.CreateAttribute(name, tname).Set(value)
         for key, idx in seg["members"].items():
@@ -503,6 +539,10 @@ class TwinStore:
                         "upper": np.array(get("gdt:upper")), "mean_score": float(get("gdt:meanScore")),
                         "size": int(get("gdt:elementCount")), "artefact": bool(get("gdt:artefact")),
                         "members": members})
+            if get("gdt:part") is not None:
+                out[-1].update({"part": str(get("gdt:part")), "part_centre": np.array(get("gdt:partCentre")),
+                                "part_pose": np.asarray(get("gdt:partPose"), dtype=np.float64).reshape(4, 4),
+                                "fit_rms": float(get("gdt:fitRms")), "fit_fitness": float(get("gdt:fitFitness"))})
         return sorted(out, key=lambda d: d["id"])
 
     def read_region_of_view(self, epoch_id: str) -> tuple[np.ndarray, np.ndarray] | None:
@@ -555,7 +595,8 @@ class TwinStore:
             rotation=pv("gdt:rotation", np.float32, (-1, 3, 3)), uncertainty_summary=pv("gdt:uncertainty", np.float32),
             state=pv("gdt:changeState", np.uint8), score=pv("gdt:changeScore", np.float32),
             source_epoch=pv("gdt:sourceEpoch", np.int32), visible=pv("gdt:visible", bool), ids=ids,
-            p_value=pv("gdt:pValue", np.float32))
+            p_value=pv("gdt:pValue", np.float32), reason=pv("gdt:fusionReason", np.uint8),
+            reason_ratio=pv("gdt:fusionRatio", np.float32))
 
     def provenance(self, epoch_id: str) -> dict:
         """The provenance recorded with an epoch."""
@@ -616,6 +657,7 @@ class TwinStore:
         flat.customLayerData = {"gdt": {"twin": str(self._path.resolve()), "epoch": epoch_id,
                                         "epochs": Vt.StringArray(upto),
                                         "state_names": Vt.StringArray(list(STATE_NAMES)),
+                                        "reason_names": Vt.StringArray(list(REASON_NAMES)),
                                         "provenance_json": json.dumps({e: self.provenance(e) for e in upto},
                                                                       sort_keys=True, default=str)}}
         flat.defaultPrim = TWIN_PRIM.strip("/")

@@ -26,13 +26,37 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
-from gdt_pipeline import ChangeState, Composite, CompositeItem, Segment, StageContext, StageSpec, hookimpl
+from gdt_pipeline import (
+    ChangeState,
+    Composite,
+    CompositeItem,
+    Dataset,
+    FusionReason,
+    Segment,
+    StageContext,
+    StageSpec,
+    hookimpl,
+)
+
+
+class PartParams(BaseModel):
+    """A catalogue part to recognise among the new segments."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(description="The part's name (a part number), recorded on the segments it fits.")
+    path: str = Field(description="Its CAD model (any mesh format trimesh reads; relative to the workflow file), "
+                                  "in the part's own frame and the workflow's units.")
+    max_rms: float | None = Field(None, gt=0, description="Largest RMS point-to-surface distance of a fit it "
+                                                          "accepts (default: 2 % of the part's diagonal).")
 
 
 class SegmentParams(BaseModel):
     """How changed elements are grouped into objects (every fusion)."""
 
     model_config = ConfigDict(extra="forbid")
+    parts: list[PartParams] = Field(default_factory=list, description="Catalogue parts fitted to every new segment "
+                                                                      "(multi-start ICP): the segment records the "
+                                                                      "part whose model fits, its pose and centre.")
     segment_radius: float | None = Field(None, gt=0, description="Elements closer than this are one object "
                                                                  "(default: 3 × their typical spacing, at least "
                                                                  "1.5σ of their largest axis).")
@@ -78,80 +102,117 @@ def _volume(cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.linalg.det(cov), 0.0))
 
 
-def _replacements(ctx: StageContext, items: list[CompositeItem], policy: str) -> tuple[dict, dict]:
-    """Which reference elements the unchanged recent elements replace: {item index: mask}, {recent index: mask}."""
+def _volumes(ds: Dataset) -> np.ndarray:
+    """√det Σ per element; inf where the dataset carries no uncertainty (it can never be the more precise)."""
+    if ds.uncertainty is None:
+        return np.full(ds.n_elements, np.inf)
+    return _volume(ds.element_covariance())
+
+
+@dataclasses.dataclass
+class _Decision:
+    """What the replacement rule decided: per known item the replaced elements and their ratios, per recent
+    dataset the taking elements and, for every unchanged recent element, its reason code and ratio."""
+
+    replaced: dict[int, np.ndarray]
+    replaced_ratio: dict[int, np.ndarray]
+    taking: dict[int, np.ndarray]
+    reason: dict[int, np.ndarray]
+    ratio: dict[int, np.ndarray]
+
+
+def _replacements(ctx: StageContext, items: list[CompositeItem], policy: str) -> _Decision:
+    """Which known elements the unchanged recent elements replace, and why each unchanged recent element does or
+    does not take their place."""
     rov = ctx.get("rov")
     if rov is None:
         raise ValueError(f"fusion {policy!r} needs a region-of-view stage before it (sensor_frustum or manual_box): "
                          f"new data replaces old only where its region of view encloses the old")
     changes = {c.query: c for c in ctx.get("change") or []}
-    pos, owner, elem = [], [], []
+    out = _Decision({i: np.zeros(it.dataset.n_elements, bool) for i, it in enumerate(items)},
+                    {i: np.full(it.dataset.n_elements, np.nan) for i, it in enumerate(items)}, {}, {}, {})
+    keep_design = policy == "most_reliable" and not ctx.params.replace_design
+    pos, owner, elem, design = [], [], [], []
     for i, it in enumerate(items):
         view = rov.in_view.get(it.key)
         if view is None:
             continue
-        ok = view & it.visible
-        if policy == "most_reliable" and it.dataset.role == "as-designed" and not ctx.params.replace_design:
-            ok = np.zeros_like(ok)
-        idx = np.flatnonzero(ok)
+        idx = np.flatnonzero(view & it.visible)
         pos.append(it.dataset.element_positions()[idx])
         owner.append(np.full(idx.size, i))
         elem.append(idx)
-    replaced = {i: np.zeros(it.dataset.n_elements, bool) for i, it in enumerate(items)}
-    taking = {}
-    if not pos or not sum(len(p) for p in pos):
-        return replaced, taking
-    pos_a, owner_a, elem_a = np.vstack(pos), np.concatenate(owner), np.concatenate(elem)
-    tree = cKDTree(pos_a)
+        design.append(np.full(idx.size, it.dataset.role == "as-designed"))
+    if not sum(len(p) for p in pos):
+        return out
+    all_pos, all_design = np.vstack(pos), np.concatenate(design)
+    # the design stays under most_reliable: only measured known elements can be replaced
+    sel_known = ~all_design if keep_design else np.ones(len(all_pos), bool)
+    pos_a, owner_a, elem_a = all_pos[sel_known], np.concatenate(owner)[sel_known], np.concatenate(elem)[sel_known]
+    design_tree = cKDTree(all_pos[all_design]) if keep_design and all_design.any() else None
+    design_gap = (float(np.median(design_tree.query(design_tree.data, k=2)[0][:, 1]))
+                  if design_tree is not None and design_tree.n > 1 else 0.0)
+    tree = cKDTree(pos_a) if len(pos_a) else None
     ref_gap = float(np.median(tree.query(pos_a, k=2)[0][:, 1])) if len(pos_a) > 1 else 0.0
     own = np.zeros(len(pos_a))
+    vol_known = np.full(len(pos_a), np.inf)
     for i in np.unique(owner_a):
-        it = items[i]
-        if it.dataset.uncertainty is not None:
-            sel = owner_a == i
-            own[sel] = 3.0 * np.sqrt(np.linalg.eigvalsh(it.dataset.element_covariance()[elem_a[sel]])[:, -1])
-    vol_cache: dict[int, np.ndarray] = {}
+        sel = owner_a == i
+        ds = items[i].dataset
+        vol_known[sel] = _volumes(ds)[elem_a[sel]]
+        if ds.uncertainty is not None:
+            own[sel] = 3.0 * np.sqrt(np.linalg.eigvalsh(ds.element_covariance()[elem_a[sel]])[:, -1])
     takers: list[np.ndarray] = []
+    taker_vol: list[np.ndarray] = []
     for qi, ds in enumerate(ctx["recent"]):
         ch = changes.get(qi)
-        if ch is None or ds.uncertainty is None:
+        if ch is None:
             continue
+        reason = np.full(ds.n_elements, FusionReason.KNOWN_STAYS, np.uint8)
+        ratio = np.full(ds.n_elements, np.nan)
+        out.reason[qi], out.ratio[qi] = reason, ratio
         cand = np.flatnonzero(ch.state == ChangeState.UNCHANGED)
         if not cand.size:
             continue
         rpos = ds.element_positions()[cand]
-        spacing = 3.0 * np.sqrt(np.linalg.eigvalsh(ds.element_covariance()[cand])[:, -1])
+        v_new = _volumes(ds)[cand]
+        spacing = (3.0 * np.sqrt(np.linalg.eigvalsh(ds.element_covariance()[cand])[:, -1])
+                   if ds.uncertainty is not None else np.zeros(len(cand)))
+        if design_tree is not None:
+            d_design, _ = design_tree.query(rpos)
+            reason[cand[d_design <= np.maximum(spacing, 2.0 * design_gap)]] = FusionReason.DESIGN_STAYS
+        if tree is None:
+            continue
         d, j = tree.query(rpos)
-        # an unchanged recent element images its nearest in-view reference element when it lies within 3σ of
-        # either's largest axis or twice the reference's spacing (a sparse noisy reference is farther away than the
+        # an unchanged recent element images its nearest in-view known element when it lies within 3σ of either's
+        # largest axis or twice the known data's spacing (a sparse noisy reference is farther away than the
         # precise σ)
         near = d <= np.maximum(np.maximum(spacing, own[j]), 2.0 * ref_gap)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = v_new / vol_known[j]
         take = near.copy()
         if policy == "most_reliable":
-            v_new = _volume(ds.element_covariance()[cand])
-            v_old = np.full(len(cand), np.inf)
-            for i in np.unique(owner_a[j[near]]):
-                if i not in vol_cache:
-                    it = items[i]
-                    vol_cache[i] = _volume(it.dataset.element_covariance()) if it.dataset.uncertainty is not None \
-                        else np.full(it.dataset.n_elements, np.inf)
-                sel = near & (owner_a[j] == i)
-                v_old[sel] = vol_cache[i][elem_a[j[sel]]]
-            take &= v_new < ctx.params.ratio * v_old
+            take &= v_new < ctx.params.ratio * vol_known[j]
+            reason[cand[near & ~take]] = FusionReason.KNOWN_MORE_PRECISE
+        reason[cand[take]] = FusionReason.REPLACES
+        ratio[cand[near]] = np.where(np.isfinite(r[near]), r[near], np.nan)
         mask = np.zeros(ds.n_elements, bool)
         mask[cand[take]] = True
-        taking[qi] = mask
+        out.taking[qi] = mask
         takers.append(rpos[take])
+        taker_vol.append(v_new[take])
     if not takers or not sum(len(t) for t in takers):
-        return replaced, taking
-    # every known element the taking data images goes, not only the nearest of each: a reference element within
-    # 3σ of its own largest axis (or 3 × the typical gap) of taking data is replaced
-    dist, _ = cKDTree(np.vstack(takers)).query(pos_a)
+        return out
+    # every known element the taking data images goes, not only the nearest of each: a known element within 3σ of
+    # its own largest axis (or twice the typical gap) of taking data is replaced
+    dist, k = cKDTree(np.vstack(takers)).query(pos_a)
     hit = dist <= np.maximum(own, 2.0 * ref_gap)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r_known = np.concatenate(taker_vol)[k] / vol_known
     for i in np.unique(owner_a[hit]):
         sel = hit & (owner_a == i)
-        replaced[i][elem_a[sel]] = True
-    return replaced, taking
+        out.replaced[i][elem_a[sel]] = True
+        out.replaced_ratio[i][elem_a[sel]] = np.where(np.isfinite(r_known[sel]), r_known[sel], np.nan)
+    return out
 
 
 def _segments(items: list[CompositeItem], masks: dict[int, np.ndarray], kind: str, params: SegmentParams,
@@ -199,6 +260,40 @@ def _segments(items: list[CompositeItem], masks: dict[int, np.ndarray], kind: st
     return out
 
 
+def _fit_parts(ctx: StageContext, items: list[CompositeItem], segments: list[Segment]) -> list[Segment]:
+    """Fit every catalogue part to every new segment no larger than it; a segment records the best accepted fit."""
+    from pathlib import Path
+
+    from .parts import fit_part, load_part
+
+    parts = []
+    for k, p in enumerate(ctx.params.parts):
+        path = Path(p.path) if Path(p.path).is_absolute() else Path(ctx.epoch.workflow_dir) / p.path
+        if not path.is_file():
+            raise ValueError(f"parts[{k}] {p.name!r}: no model file {path}")
+        parts.append(load_part(p.name, path, p.max_rms, ctx.seed))
+    keys = {it.key: it for it in items}
+    out, record = [], []
+    for g in segments:
+        if g.kind != "new" or g.artefact:
+            out.append(g)
+            continue
+        pts = np.vstack([keys[k].dataset.element_positions()[idx] for k, idx in g.members.items()])
+        extent = float(np.linalg.norm(g.upper - g.lower))
+        fits = [fit_part(pts, part, ctx.rng) for part in parts if extent <= 1.5 * part.diagonal]
+        ok = [f for f in fits if f.accepted]
+        best = min(ok, key=lambda f: f.rms) if ok else None
+        record.append({"segment": g.id, "fitted": None if best is None else best.part,
+                       "tried": {f.part: {"rms": f.rms, "fitness": f.fitness, "ambiguous": f.ambiguous}
+                                 for f in fits}})
+        out.append(g if best is None else dataclasses.replace(
+            g, part=best.part, part_pose=best.pose, part_centre=best.centre, fit_rms=best.rms,
+            fit_fitness=best.fitness))
+    ctx.report(parts={"models": {p.name: {"path": str(p.path), "sha256": p.sha256, "max_rms": p.max_rms}
+                                 for p in parts}, "segments": record})
+    return out
+
+
 def _fuse(ctx: StageContext, policy: str | None) -> dict[str, Any]:
     reference = ctx.get("reference") or Composite()
     changes = {c.query: c for c in ctx.get("change") or []}
@@ -209,25 +304,34 @@ def _fuse(ctx: StageContext, policy: str | None) -> dict[str, Any]:
     for it in reference.items:
         state = np.where(it.state == ChangeState.NEW, ChangeState.UNCHANGED, it.state).astype(np.uint8)
         visible = it.visible
+        # hidden elements keep the reason they left with; what is still shown is "kept" until this epoch says more
+        reason = np.where(it.visible, FusionReason.KEPT, it.reason).astype(np.uint8)
+        ratio = np.where(it.visible, np.nan, it.reason_ratio)
         if rov is not None and it.key in rov.in_view:
             view, matched = rov.in_view[it.key], rov.matched[it.key]
             removed = view & ~matched & it.visible
             state = np.where(state == ChangeState.OUTSIDE_ROV, ChangeState.UNCHANGED, state).astype(np.uint8)
             state[it.visible & ~view] = ChangeState.OUTSIDE_ROV
             state[removed] = ChangeState.REMOVED
+            reason[it.visible & ~view] = FusionReason.OUTSIDE_ROV
+            reason[removed] = FusionReason.REMOVED
             visible = it.visible & ~removed
             removed_now[len(items)] = removed
-        items.append(dataclasses.replace(it, state=state, visible=visible))
-    taking: dict[int, np.ndarray] = {}
+        items.append(dataclasses.replace(it, state=state, visible=visible, reason=reason, reason_ratio=ratio))
+    decision = None
     if policy is not None and reference.items:
-        replaced, taking = _replacements(ctx, items, policy)
+        decision = _replacements(ctx, items, policy)
         counts = {}
-        for i, mask in replaced.items():
+        for i, mask in decision.replaced.items():
             if mask.any():
-                items[i] = dataclasses.replace(items[i], visible=items[i].visible & ~mask)
-                counts[items[i].key] = int(mask.sum())
+                it = items[i]
+                items[i] = dataclasses.replace(
+                    it, visible=it.visible & ~mask,
+                    reason=np.where(mask, FusionReason.REPLACED, it.reason).astype(np.uint8),
+                    reason_ratio=np.where(mask, decision.replaced_ratio[i], it.reason_ratio))
+                counts[it.key] = int(mask.sum())
         ctx.report(fusion={"policy": policy, "replaced": counts,
-                           "taking_over": {ctx["recent"][q].name: int(m.sum()) for q, m in taking.items()},
+                           "taking_over": {ctx["recent"][q].name: int(m.sum()) for q, m in decision.taking.items()},
                            "rule": "unchanged recent element in view replaces its nearest known element" +
                                    (" when its √det Σ is smaller" if policy == "most_reliable" else "")})
     for qi, ds in enumerate(ctx["recent"]):
@@ -236,21 +340,31 @@ def _fuse(ctx: StageContext, policy: str | None) -> dict[str, Any]:
         if ch is None and reference.items:
             raise ValueError(f"dataset {ds.name!r} has no change result although a reference exists")
         p_value = None
+        reason = np.full(n, FusionReason.BASELINE, np.uint8)
+        ratio = np.full(n, np.nan)
         if ch is None:
             visible = np.ones(n, dtype=bool)
             state = np.full(n, ChangeState.UNCHANGED, dtype=np.uint8)
             score = np.full(n, np.nan)
         else:
             visible, state, score, p_value = ch.mask, ch.state, ch.score, ch.p_value
-            if qi in taking:
-                visible = visible | taking[qi]
+            reason[:] = FusionReason.KNOWN_STAYS
+            if decision is not None and qi in decision.reason:
+                reason, ratio = decision.reason[qi], decision.ratio[qi]
+            if decision is not None and qi in decision.taking:
+                visible = visible | decision.taking[qi]
+            reason = np.where(state == ChangeState.NEW, FusionReason.NEW, reason).astype(np.uint8)
         items.append(CompositeItem(key=f"{epoch.id}_{ds.name}", dataset=ds, epoch=epoch.id, state=state, score=score,
                                    source_epoch=np.full(n, epoch.index, dtype=np.int32), visible=visible,
-                                   p_value=p_value))
+                                   p_value=p_value, reason=reason, reason_ratio=ratio))
+    codes = np.bincount(np.concatenate([it.reason for it in items]), minlength=len(FusionReason)) if items else []
+    ctx.report(reasons={r.name.lower(): int(codes[r]) for r in FusionReason if codes[r]})
     n_ref = len(reference.items)
     new_masks = {n_ref + qi: (items[n_ref + qi].state == ChangeState.NEW) & items[n_ref + qi].visible
                  for qi in range(len(ctx["recent"])) if reference.items}
     segments = _segments(items, new_masks, "new", ctx.params, 0)
+    if ctx.params.parts:
+        segments = _fit_parts(ctx, items, segments)
     segments += _segments(items, removed_now, "removed", ctx.params, len(segments))
     if segments:
         real = [g for g in segments if not g.artefact]

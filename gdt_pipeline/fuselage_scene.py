@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .paper_scenes import TOLERANCE, EpochFiles, _distance_to, _facets_in_view
+from .scenes import write_objects
 from .simulate import ScannerSpec, simulate_scan, write_scan
 
 RADIUS = 1.95
@@ -158,12 +159,8 @@ def make_fuselage_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: fl
     rng = np.random.default_rng(seed)
     objects = fuselage_objects()
     cad_names = [n for n, (_, kind) in objects.items() if kind == "cad"]
-    files: dict[str, EpochFiles] = {"E0": EpochFiles("E0")}
-    for name, (mesh, kind) in objects.items():
-        path = out / (f"cad_{name}.obj" if kind == "cad" else f"truth_{name}.obj")
-        path.write_text(mesh.export(file_type="obj", include_normals=False, include_texture=False))
-        if kind == "cad":
-            files["E0"].scans.append(path)
+    files: dict[str, EpochFiles] = {
+        "E0": EpochFiles("E0", scans=write_objects(out, {n: (m, kind == "cad") for n, (m, kind) in objects.items()}))}
     present = [n for n in objects if n != "bracket_removed"]
     now = [objects[n][0] for n in present]
     before = [objects[n][0] for n in cad_names]

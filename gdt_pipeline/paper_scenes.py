@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .scenes import scene_objects
+from .scenes import scene_objects, write_objects
 from .simulate import ScannerSpec, simulate_scan, write_scan
 
 TOLERANCE = 0.001  # m: a clean point farther than this from the previous as-is surfaces lies on changed geometry
@@ -90,13 +90,7 @@ def make_paper_test_scene(out_dir: str | Path, *, seed: int = 0) -> dict[str, Ep
     names = list(objects)
     target = np.array([0.0, 0.0, 0.15])
     files: dict[str, EpochFiles] = {}
-    cad = []
-    for name, (mesh, in_cad) in objects.items():
-        path = out / (f"cad_{name}.obj" if in_cad else f"truth_{name}.obj")
-        path.write_text(mesh.export(file_type="obj", include_normals=False, include_texture=False))
-        if in_cad:
-            cad.append(path)
-    files["E0"] = EpochFiles("E0", scans=cad)
+    files["E0"] = EpochFiles("E0", scans=write_objects(out, objects))
     present = {
         "E0": [n for n in names if objects[n][1]],
         "E1": names,

@@ -108,6 +108,17 @@ def simulate_tof_scan(meshes: list, viewpoints: np.ndarray, target: np.ndarray, 
     return {"points": noisy, "clean": clean_a, "object_id": obj_a, "viewpoint": view_a, "beam": d_a}
 
 
+def write_objects(root: Path, objects: dict[str, tuple[object, bool]]) -> list[Path]:
+    """Write each object as ``cad_<name>.obj`` (in the CAD) or ``truth_<name>.obj`` (only in reality); the CAD paths."""
+    cad = []
+    for name, (mesh, in_cad) in objects.items():
+        path = root / (f"cad_{name}.obj" if in_cad else f"truth_{name}.obj")
+        path.write_text(mesh.export(file_type="obj", include_normals=False, include_texture=False))
+        if in_cad:
+            cad.append(path)
+    return cad
+
+
 def make_test_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: float = 20000.0,
                     noise_sigma: float = 0.004) -> SceneFiles:
     """Write the demo test scene (CAD of E0 and a simulated noisy scan of E1) with ground truth into out_dir."""
@@ -117,12 +128,7 @@ def make_test_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: float 
     root.mkdir(parents=True, exist_ok=True)
     objects = scene_objects()
     names = list(objects)
-    cad_paths = []
-    for name, (mesh, in_cad) in objects.items():
-        path = root / (f"cad_{name}.obj" if in_cad else f"truth_{name}.obj")
-        path.write_text(mesh.export(file_type="obj", include_normals=False, include_texture=False))
-        if in_cad:
-            cad_paths.append(path)
+    cad_paths = write_objects(root, objects)
     target = np.array([0.0, 0.0, 0.15])
     az = np.radians([-60.0, 30.0, 150.0])
     viewpoints = np.column_stack([2.0 * np.cos(az), 2.0 * np.sin(az), np.full(3, 1.2)])

@@ -98,15 +98,13 @@ def _replace_in_view(ctx: StageContext) -> dict[str, Any]:
     return _fuse(ctx, "replace_in_view")
 
 
-def _volume(cov: np.ndarray) -> np.ndarray:
-    return np.sqrt(np.maximum(np.linalg.det(cov), 0.0))
-
-
-def _volumes(ds: Dataset) -> np.ndarray:
-    """√det Σ per element; inf where the dataset carries no uncertainty (it can never be the more precise)."""
+def _spread(ds: Dataset, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """√det Σ (the volume of the error ellipsoid) and the largest-axis σ of the given elements, from one covariance
+    evaluation; inf and 0 where the dataset carries no uncertainty (it can never be the more precise)."""
     if ds.uncertainty is None:
-        return np.full(ds.n_elements, np.inf)
-    return _volume(ds.element_covariance())
+        return np.full(len(idx), np.inf), np.zeros(len(idx))
+    cov = ds.element_covariance()[idx]
+    return np.sqrt(np.maximum(np.linalg.det(cov), 0.0)), np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, -1], 0.0))
 
 
 @dataclasses.dataclass
@@ -157,10 +155,8 @@ def _replacements(ctx: StageContext, items: list[CompositeItem], policy: str) ->
     vol_known = np.full(len(pos_a), np.inf)
     for i in np.unique(owner_a):
         sel = owner_a == i
-        ds = items[i].dataset
-        vol_known[sel] = _volumes(ds)[elem_a[sel]]
-        if ds.uncertainty is not None:
-            own[sel] = 3.0 * np.sqrt(np.linalg.eigvalsh(ds.element_covariance()[elem_a[sel]])[:, -1])
+        vol_known[sel], sigma = _spread(items[i].dataset, elem_a[sel])
+        own[sel] = 3.0 * sigma
     takers: list[np.ndarray] = []
     taker_vol: list[np.ndarray] = []
     for qi, ds in enumerate(ctx["recent"]):
@@ -174,9 +170,8 @@ def _replacements(ctx: StageContext, items: list[CompositeItem], policy: str) ->
         if not cand.size:
             continue
         rpos = ds.element_positions()[cand]
-        v_new = _volumes(ds)[cand]
-        spacing = (3.0 * np.sqrt(np.linalg.eigvalsh(ds.element_covariance()[cand])[:, -1])
-                   if ds.uncertainty is not None else np.zeros(len(cand)))
+        v_new, sigma = _spread(ds, cand)
+        spacing = 3.0 * sigma
         if design_tree is not None:
             d_design, _ = design_tree.query(rpos)
             reason[cand[d_design <= np.maximum(spacing, 2.0 * design_gap)]] = FusionReason.DESIGN_STAYS
@@ -231,8 +226,7 @@ def _segments(items: list[CompositeItem], masks: dict[int, np.ndarray], kind: st
         owner.append(np.full(idx.size, i))
         elem.append(idx)
         score.append(items[i].score[idx])
-        sig.append(np.sqrt(np.linalg.eigvalsh(ds.element_covariance()[idx])[:, -1]) if ds.uncertainty is not None
-                   else np.zeros(idx.size))
+        sig.append(_spread(ds, idx)[1])
     if not pos:
         return []
     pos_a, owner_a, elem_a = np.vstack(pos), np.concatenate(owner), np.concatenate(elem)

@@ -231,11 +231,6 @@ def _shadowed(origins: np.ndarray, targets: np.ndarray, tree: cKDTree, radius: f
     return out
 
 
-def _element_positions(item: Any) -> np.ndarray:
-    ds = item.dataset
-    return ds.element_positions()
-
-
 def _look(ctx: StageContext, rov: RegionOfView, parts: list[str]) -> dict[str, Any]:
     """In view and matched, per reference item, and the report of how."""
     p = ctx.params
@@ -269,12 +264,14 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str]) -> dict[str, A
     sig3 = np.broadcast_to(sig, (len(rpts),))
     in_view, matched, counts = {}, {}, {"inside": 0, "occluded": 0, "in_view": 0, "unmatched_in_view": 0}
     for item in reference.items:
-        pos = _element_positions(item)
+        pos = item.dataset.element_positions()
         inside = rov.contains(pos) & item.visible
-        if p.cull_back_faces and item.dataset.faces is not None and vps is not None:
-            # a facet facing away from every sensor was not seen, whatever lies between: a solid's far side
+        normal = None
+        if item.dataset.faces is not None:
             tri = item.dataset.points[item.dataset.faces]
             normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        if p.cull_back_faces and normal is not None and vps is not None:
+            # a facet facing away from every sensor was not seen, whatever lies between: a solid's far side
             inside &= np.any(np.einsum("fj,sfj->sf", normal, vps[:, None, :] - pos[None]) > 0, axis=0)
         view = inside.copy()
         idx = np.flatnonzero(inside)
@@ -299,13 +296,11 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str]) -> dict[str, A
             ok = np.isfinite(d)
             jj = np.where(ok, j, 0)
             hit = ok & (d <= np.maximum(radius[jj], own[:, None]))
-            if item.dataset.faces is not None:
+            if normal is not None:
                 # on a facet, recent data must also lie in its plane within the uncertainties (3σ of either
                 # side): a surface 5 mm behind a removed bracket's plate is not the plate
-                tri = item.dataset.points[item.dataset.faces[view]]
-                normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-                normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
-                off = np.abs(np.einsum("ij,ikj->ik", normal, rpts[jj] - pos[view][:, None, :]))
+                unit = normal[view] / np.maximum(np.linalg.norm(normal[view], axis=1, keepdims=True), 1e-300)
+                off = np.abs(np.einsum("ij,ikj->ik", unit, rpts[jj] - pos[view][:, None, :]))
                 hit &= off <= np.maximum(3.0 * sig3[jj], own[:, None])
             near[np.flatnonzero(view)] = np.any(hit, axis=1)
         in_view[item.key], matched[item.key] = view, near

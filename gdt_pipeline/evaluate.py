@@ -34,6 +34,7 @@ from .geometry import ReferenceIndex
 from .plugins import Registry, load_registry
 from .runner import _identifier, read_dataset, run_workflow
 from .sensors import PRESETS
+from .simulate import distance_to
 from .types import ChangeState, Composite, CompositeItem, Dataset
 from .workflow import load_workflow
 
@@ -110,24 +111,6 @@ def _sample_sets(sets: list, spacing: float, rng: np.random.Generator, *, visibl
         pts, _ = trimesh.sample.sample_surface(mesh, n, seed=int(rng.integers(2**31)))
         out.append(np.asarray(pts))
     return np.vstack(out) if out else np.zeros((0, 3))
-
-
-def _mesh_scene(meshes: list):  # -> o3d.t.geometry.RaycastingScene
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    for m in meshes:
-        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
-                            o3d.core.Tensor(np.asarray(m.faces, np.uint32)))
-    return scene
-
-
-def _distance_to(meshes: list, points: np.ndarray) -> np.ndarray:
-    import open3d as o3d
-
-    if not meshes or not len(points):
-        return np.full(len(points), np.inf)
-    return _mesh_scene(meshes).compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy().astype(float)
 
 
 def _truth_meshes(scene_dir: Path, states: dict[str, str]) -> dict[str, Any]:
@@ -507,7 +490,7 @@ def _composite_distance(scene_dir: Path, et: dict[str, Any], sets: list, rng: np
     if not meshes:
         return None
     pts = _sample_sets(sets, 0.005, rng)
-    d = _distance_to(list(meshes.values()), pts) * 1000.0
+    d = distance_to(list(meshes.values()), pts) * 1000.0
     return {"mean_mm": round(float(d.mean()), 3), "p95_mm": round(float(np.quantile(d, 0.95)), 3), "n": len(d),
             "note": "composite points (meshes sampled every 5 mm) to the nearest true as-is surface"}
 

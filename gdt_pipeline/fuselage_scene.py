@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .paper_scenes import TOLERANCE, EpochFiles, _distance_to, _facets_in_view
+from .paper_scenes import TOLERANCE, EpochFiles, _facets_in_view
 from .scenes import write_objects
-from .simulate import ScannerSpec, simulate_scan, write_scan
+from .simulate import ScannerSpec, distance_to, simulate_scan, write_scan
 
 RADIUS = 1.95
 LENGTH = 1.6
@@ -177,7 +177,7 @@ def make_fuselage_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: fl
     changed_all = []
     for k, ((eye, target), st_spec) in enumerate(zip(stations, specs, strict=True)):
         scan = simulate_scan(now, eye, target, st_spec, rng)
-        changed = _distance_to(before, scan.clean) > TOLERANCE
+        changed = distance_to(before, scan.clean) > TOLERANCE
         changed_all.append(changed)
         written = write_scan(scan, out / f"scan_E1_s{k}.ply", object_names=present, changed=changed,
                              spec=st_spec)

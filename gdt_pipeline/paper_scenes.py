@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .scenes import scene_objects, write_objects
-from .simulate import ScannerSpec, simulate_scan, write_scan
+from .simulate import ScannerSpec, distance_to, raycasting_scene, simulate_scan, write_scan
 
 TOLERANCE = 0.001  # m: a clean point farther than this from the previous as-is surfaces lies on changed geometry
 
@@ -41,26 +41,11 @@ def _stations(n: int, radius: float, height: float, start_deg: float, span_deg: 
     return np.column_stack([radius * np.cos(az), radius * np.sin(az), np.full(n, height)])
 
 
-def _distance_to(meshes: list, points: np.ndarray) -> np.ndarray:
-    import open3d as o3d
-
-    if not meshes:
-        return np.full(len(points), np.inf)
-    scene = o3d.t.geometry.RaycastingScene()
-    for m in meshes:
-        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
-                            o3d.core.Tensor(np.asarray(m.faces, np.uint32)))
-    return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy().astype(np.float64)
-
-
 def _facets_in_view(mesh, stations: np.ndarray, blockers: list, spec: ScannerSpec, target: np.ndarray) -> np.ndarray:
     """Whether any station sees each facet's centroid: inside its field of view, in range, not occluded."""
     import open3d as o3d
 
-    scene = o3d.t.geometry.RaycastingScene()
-    for m in blockers:
-        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
-                            o3d.core.Tensor(np.asarray(m.faces, np.uint32)))
+    scene = raycasting_scene(blockers)
     c = mesh.triangles_center
     seen = np.zeros(len(c), dtype=bool)
     for eye in stations:
@@ -115,7 +100,7 @@ def make_paper_test_scene(out_dir: str | Path, *, seed: int = 0) -> dict[str, Ep
         all_changed = []
         for k, eye in enumerate(stations):
             scan = simulate_scan(now, eye, target, spec, rng)
-            changed = _distance_to(before, scan.clean) > TOLERANCE
+            changed = distance_to(before, scan.clean) > TOLERANCE
             all_changed.append(changed)
             written = write_scan(scan, out / f"scan_{eid}_s{k}.ply", object_names=present[eid], changed=changed,
                                  spec=spec)

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .simulate import raycasting_scene
+
 
 @dataclass(frozen=True)
 class SceneFiles:
@@ -75,10 +77,7 @@ def simulate_tof_scan(meshes: list, viewpoints: np.ndarray, target: np.ndarray, 
     """Cast a pinhole camera's rays from each viewpoint at ``target`` and return noisy hits with their truth."""
     import open3d as o3d
 
-    scene = o3d.t.geometry.RaycastingScene()
-    for m in meshes:
-        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, dtype=np.float32)),
-                            o3d.core.Tensor(np.asarray(m.faces, dtype=np.uint32)))
+    scene = raycasting_scene(meshes)
     clean, obj, view, dirs = [], [], [], []
     for k, eye in enumerate(viewpoints):
         rng_dist = float(np.linalg.norm(target - eye))

@@ -77,6 +77,27 @@ def _rays(spec: ScannerSpec, eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.hstack([np.broadcast_to(eye, d.shape), d])
 
 
+def raycasting_scene(meshes: list):  # -> o3d.t.geometry.RaycastingScene
+    """An Open3D raycasting scene holding the triangles of ``meshes`` (anything with vertices and faces)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    for m in meshes:
+        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, dtype=np.float32)),
+                            o3d.core.Tensor(np.asarray(m.faces, dtype=np.uint32)))
+    return scene
+
+
+def distance_to(meshes: list, points: np.ndarray) -> np.ndarray:
+    """Distance of each point to the nearest of ``meshes`` (inf when there are none)."""
+    import open3d as o3d
+
+    if not meshes or not len(points):
+        return np.full(len(points), np.inf)
+    return raycasting_scene(meshes).compute_distance(
+        o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy().astype(np.float64)
+
+
 def simulate_scan(meshes: list, eye: np.ndarray, target: np.ndarray, spec: ScannerSpec, rng: np.random.Generator,
                   profile: SensorProfile | None = None) -> SimulatedScan:
     """Cast the scanner's rays at the scene (a list of trimesh meshes) and return the noisy hits with their truth."""
@@ -84,10 +105,7 @@ def simulate_scan(meshes: list, eye: np.ndarray, target: np.ndarray, spec: Scann
 
     profile = profile or PRESETS[spec.profile]
     eye, target = np.asarray(eye, dtype=np.float64), np.asarray(target, dtype=np.float64)
-    scene = o3d.t.geometry.RaycastingScene()
-    for m in meshes:
-        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, dtype=np.float32)),
-                            o3d.core.Tensor(np.asarray(m.faces, dtype=np.uint32)))
+    scene = raycasting_scene(meshes)
     rays = _rays(spec, eye, target)
     ans = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))
     length = np.linalg.norm(rays[:, 3:], axis=1)

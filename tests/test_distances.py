@@ -190,6 +190,30 @@ def test_calibrated_threshold_achieves_its_false_alarm_rate(registry, measure: s
     assert cal["false_alarm_achieved"] == pytest.approx(alpha, rel=0.2) and cal["tau"] == change.threshold
 
 
+def test_calibrated_threshold_per_epoch_pools_the_datasets(registry) -> None:
+    # two scans of one epoch with different noise: one τ for both, and the share of all their unchanged elements
+    # flagged is the rate asked for (each scan's own share may differ, which is what pooling trades for speed)
+    rng = np.random.default_rng(8)
+    alpha = 0.02
+    ref_unc = GaussianUncertainty.isotropic(0.004)
+    scores = []
+    for n, sigma in ((60_000, 0.001), (20_000, 0.01)):
+        rec, ref = _unchanged_pairs(n, rng, ref_unc, GaussianUncertainty(np.diag([sigma**2, 1e-6, 1e-6])[None]))
+        out, _ = _pairs_context(registry, "bhattacharyya", {}, rec, ref)
+        scores += out["scores"]
+    out, ctx = _pairs_context(registry, "calibrated_threshold", {"false_alarm": alpha, "samples": 60_000,
+                                                                 "per": "epoch"}, rec, ref, {"scores": scores})
+    changes = out["change"]
+    assert len(changes) == 2 and changes[0].threshold == changes[1].threshold
+    flagged = np.concatenate([c.mask for c in changes])
+    assert flagged.mean() == pytest.approx(alpha, rel=0.15)
+    [cal] = ctx.notes["calibration"]
+    assert cal["false_alarm_achieved"] == pytest.approx(alpha, rel=0.15) and cal["tau"] == changes[0].threshold
+    per_dataset, _ = _pairs_context(registry, "calibrated_threshold", {"false_alarm": alpha, "samples": 60_000},
+                                    rec, ref, {"scores": scores})
+    assert per_dataset["change"][0].threshold != per_dataset["change"][1].threshold
+
+
 def test_hotelling_and_welch_against_scipy(registry) -> None:
     rng = np.random.default_rng(2)
     cov = np.diag([1e-4, 4e-4, 9e-4])

@@ -12,7 +12,7 @@ comes in as new, never silently dropped.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
@@ -84,10 +84,41 @@ class CalibratedParams(BaseModel):
     false_alarm: float = Field(0.01, gt=0, lt=0.5, description="Share of unchanged elements allowed to be flagged.")
     samples: PositiveInt = Field(50_000, description="Simulated unchanged pairs used to set τ (and again, "
                                                       "independently, to check the rate achieved).")
+    per: Literal["dataset", "epoch"] = Field(
+        "dataset", description="dataset: one τ per recent dataset, each from its own `samples` pairs; epoch: one τ "
+                               "for all of the epoch's datasets, from `samples` pairs drawn across them in "
+                               "proportion to their sizes (for many scans of one sensor: the cost does not grow "
+                               "with the number of scans).")
+
+
+def _pooled(ctx: StageContext, scores: list[Scores]) -> dict[str, Any]:
+    """One τ for the epoch: the simulated null pairs drawn over all datasets in proportion to their elements."""
+    p = ctx.params
+    if any(s.simulate is None for s in scores):
+        bad = next(s for s in scores if s.simulate is None)
+        raise ValueError(f"measure {bad.measure!r} cannot simulate unchanged pairs; use fixed or significance")
+    sizes = np.array([np.isfinite(s.score).sum() for s in scores], dtype=np.float64)
+    if not scores or sizes.sum() == 0:
+        return {"change": [_change(s, np.ones(len(s.score), bool), None) for s in scores]}
+
+    def draw() -> np.ndarray:
+        counts = ctx.rng.multinomial(p.samples, sizes / sizes.sum())
+        return np.concatenate([s.simulate(ctx.rng, int(n)) for s, n in zip(scores, counts, strict=True) if n])
+
+    null = draw()
+    tau = float(np.quantile(null, 1.0 - p.false_alarm))
+    achieved = float(np.mean(draw() > tau))
+    ctx.log.info("calibrated tau %.6g over %d datasets for false alarms %.4g: achieved %.4g on an independent "
+                 "simulation", tau, len(scores), p.false_alarm, achieved)
+    ctx.report(calibration=[{"query": [s.query for s in scores], "tau": tau, "false_alarm_target": p.false_alarm,
+                             "false_alarm_achieved": achieved, "samples": int(p.samples)}])
+    return {"change": [_change(s, _above(s.score, tau), tau) for s in scores]}
 
 
 def _calibrated(ctx: StageContext) -> dict[str, Any]:
     p = ctx.params
+    if p.per == "epoch":
+        return _pooled(ctx, list(ctx["scores"]))
     out, report = [], []
     for s in ctx["scores"]:
         if s.simulate is None:
@@ -111,7 +142,7 @@ def _calibrated(ctx: StageContext) -> dict[str, Any]:
 @hookimpl
 def gdt_stages() -> list[StageSpec]:
     """The built-in thresholds."""
-    common = {"family": "threshold", "version": "1.1.0", "requires": ("scores",), "provides": ("change",)}
+    common = {"family": "threshold", "version": "1.2.0", "requires": ("scores",), "provides": ("change",)}
     return [
         StageSpec(name="fixed", params=FixedParams, run=_fixed, description="Changed where score > τ.", **common),
         StageSpec(name="tolerance_multiple", params=ToleranceMultipleParams, run=_tolerance_multiple,

@@ -160,3 +160,29 @@ def test_the_region_of_view_is_stored_with_its_epoch_and_read_back_with_pxr(tmp_
     prim = stage.GetPrimAtPath("/RegionsOfView/E0")
     assert prim and UsdGeom.Imageable(prim).GetPurposeAttr().Get() == UsdGeom.Tokens.guide
     assert store.read_region_of_view("E1") is None or store.read_region_of_view("E1")[0].shape == (0, 3)
+
+
+def test_sight_to_the_stations_where_the_plane_of_sight_cuts_through_the_scene(registry, tmp_path) -> None:
+    # station A looks at a removed cube's -x face along a clear line; station B, off to the side, makes the Plane of
+    # Sight the segment AB, and the sight ray from that face to AB runs through a plate B measured: the paper's rule
+    # calls the face hidden, the station rule sees it from A and calls it removed
+    a, b = np.array([-2.0, 0.0, 0.0]), np.array([2.0, 3.0, 0.0])
+    cube = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    reference = Composite((_item("E0_cube", cube),))
+    x, z = np.meshgrid(np.arange(-0.8, -0.2, 0.01), np.arange(-0.3, 0.3, 0.01), indexing="ij")
+    plate = np.column_stack([x.ravel(), np.full(x.size, 0.45), z.ravel()])
+    recent = [_scan(_grid(3.0, -1, 1, -1, 1, 0.02), a, "seen_from_a"), _scan(plate, b, "seen_from_b")]
+    face = np.flatnonzero(cube.face_normals[:, 0] < -0.9)
+    box = {"lower": [-1, -1, -1], "upper": [1, 1, 1]}
+    views = {}
+    for sight in ("plane", "stations"):
+        ctx = _ctx(registry, "manual_box", {**box, "sight": sight}, recent, reference, tmp_path)
+        rov = registry.get("manual_box").run(ctx)["rov"]
+        views[sight] = rov.in_view["E0_cube"]
+        assert not rov.matched["E0_cube"][views[sight]].any()
+    assert not views["plane"][face].any()
+    assert views["stations"][face].all()
+    # the faces no station faces stay out of view either way
+    away = np.flatnonzero(np.all(np.einsum("ij,sij->si", cube.face_normals,
+                                           np.stack([a, b])[:, None, :] - cube.triangles_center[None]) <= 0, axis=0))
+    assert away.size and not views["stations"][away].any()

@@ -46,6 +46,11 @@ class OcclusionParams(BaseModel):
                                                     "view (needs outward facet normals, as CAD solids have).")
     viewpoints: list[list[float]] | None = Field(None, description="Sensor positions for the POS (default: those "
                                                                    "the inputs carry).")
+    sight: Literal["plane", "stations"] = Field(
+        "plane", description="plane: the sight ray runs to the Plane of Sight through all sensor positions (the "
+                             "paper; for sensors along one sweep); stations: to each sensor whose own frustum holds "
+                             "the element and which the facet faces, in view when any such ray is clear (for "
+                             "stations all around the object, where one plane through them cuts through it).")
 
 
 class FrustumParams(OcclusionParams):
@@ -104,7 +109,8 @@ def _pose(ds: Dataset, workflow_dir: Path) -> dict[str, Any] | None:
     return data if data.get("target") is not None and data.get("scanner") else None
 
 
-def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path) -> list[tuple[np.ndarray, np.ndarray, str]]:
+def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path
+                    ) -> list[tuple[np.ndarray, np.ndarray, str, np.ndarray]]:
     pose = _pose(ds, workflow_dir)
     pts = ds.element_positions()
     if pose is not None and (pose["scanner"].get("kind", "pinhole") == "pinhole"):
@@ -114,7 +120,7 @@ def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path) -> list[t
         tv = th / (p.aspect or sc["aspect"])
         far = p.far or float(sc["max_range"])
         verts, faces = _frustum_mesh(eye, target - eye, (-th, th), (-tv, tv), p.near, far)
-        return [(verts, faces, f"{ds.name}: pinhole frustum from its pose file")]
+        return [(verts, faces, f"{ds.name}: pinhole frustum from its pose file", eye)]
     if ds.viewpoints is None or not len(pts):
         return []
     out = []
@@ -130,7 +136,7 @@ def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path) -> list[t
         m = np.tan(np.radians(p.margin_deg))
         far = p.far or 1.05 * float(np.linalg.norm(d, axis=1).max())
         verts, faces = _frustum_mesh(eye, f, (a.min() - m, a.max() + m), (b.min() - m, b.max() + m), p.near, far)
-        out.append((verts, faces, f"{ds.name}: frustum fitted to its points from {np.round(eye, 4).tolist()}"))
+        out.append((verts, faces, f"{ds.name}: frustum fitted to its points from {np.round(eye, 4).tolist()}", eye))
     return out
 
 
@@ -191,16 +197,33 @@ def _pos_closest(points: np.ndarray, viewpoints: np.ndarray) -> np.ndarray:
     return centre + best[:, :1] * e1 + best[:, 1:] * e2
 
 
-def _occluded(origins: np.ndarray, targets: np.ndarray, tris: list[tuple[np.ndarray, np.ndarray]], rule: str
-              ) -> np.ndarray:
+def _convex_contains(verts: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Whether each point lies inside a closed convex mesh (a frustum): behind every facet's plane."""
+    tri = verts[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal[np.einsum("ij,ij->i", normal, tri[:, 0] - verts.mean(axis=0)) < 0] *= -1  # outward, whatever the winding
+    return np.all(np.einsum("fj,pfj->pf", normal, points[:, None, :] - tri[None, :, 0]) <= 0, axis=1)
+
+
+def _sight_scene(tris: list[tuple[np.ndarray, np.ndarray]]):  # -> o3d.t.geometry.RaycastingScene | None
+    """The recent surfaces as one ray-casting scene (built once for all sight rays)."""
     import open3d as o3d
 
-    if not len(origins) or not tris:
-        return np.zeros(len(origins), dtype=bool)
+    if not any(len(f) for _, f in tris):
+        return None
     scene = o3d.t.geometry.RaycastingScene()
     for v, f in tris:
         if len(f):
             scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    return scene
+
+
+def _occluded(origins: np.ndarray, targets: np.ndarray, scene, rule: str) -> np.ndarray:
+    """Whether each sight segment crosses the recent surfaces (an odd number of times, or at all)."""
+    import open3d as o3d
+
+    if not len(origins) or scene is None:
+        return np.zeros(len(origins), dtype=bool)
     rays = np.hstack([origins, targets - origins]).astype(np.float32)  # direction unnormalised: t in [0, 1] = segment
     ans = scene.list_intersections(o3d.core.Tensor(rays))
     split = ans["ray_splits"].numpy()
@@ -231,7 +254,11 @@ def _shadowed(origins: np.ndarray, targets: np.ndarray, tree: cKDTree, radius: f
     return out
 
 
-def _look(ctx: StageContext, rov: RegionOfView, parts: list[str]) -> dict[str, Any]:
+Station = tuple[np.ndarray, Any]  # a sensor position and the test of which points its own volume holds
+
+
+def _look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list[Station] | None = None
+          ) -> dict[str, Any]:
     """In view and matched, per reference item, and the report of how."""
     p = ctx.params
     recent: list[Dataset] = ctx["recent"]
@@ -246,12 +273,19 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str]) -> dict[str, A
     if p.occlusion and vps is None:
         raise ValueError("occlusion needs sensor positions: the inputs carry no viewpoints; state them under "
                          "'viewpoints' or set occlusion: false")
+    if p.sight == "stations":
+        stations = stations if stations is not None else [(eye, rov.contains) for eye in (
+            vps if vps is not None else np.zeros((0, 3)))]
+        if not stations:
+            raise ValueError("sight: stations needs sensor positions: the inputs carry no viewpoints; state them "
+                             "under 'viewpoints'")
     surfaces, how = [], []
     if p.occlusion:
         for ds in recent:
             v, f, method = _surface(ds, spacing)
             surfaces.append((v, f))
             how.append(f"{ds.name}: {method} ({len(f)} triangles)")
+    sight_scene = _sight_scene(surfaces) if p.occlusion else None
     tree = cKDTree(rpts) if len(rpts) else None
     # measured points in the line of sight hide an element even where the intermediate surface has holes (thin
     # parts seen at grazing angles): recent point clouds only, meshes are their own surface
@@ -270,21 +304,20 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str]) -> dict[str, A
         if item.dataset.faces is not None:
             tri = item.dataset.points[item.dataset.faces]
             normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        if p.cull_back_faces and normal is not None and vps is not None:
-            # a facet facing away from every sensor was not seen, whatever lies between: a solid's far side
-            inside &= np.any(np.einsum("fj,sfj->sf", normal, vps[:, None, :] - pos[None]) > 0, axis=0)
-        view = inside.copy()
-        idx = np.flatnonzero(inside)
-        if p.occlusion and idx.size:
-            pos_target = _pos_closest(pos[idx], vps)
-            direction = pos_target - pos[idx]
-            length = np.linalg.norm(direction, axis=1, keepdims=True)
-            start = pos[idx] + direction / np.maximum(length, 1e-12) * np.minimum(offset, 0.5 * length)
-            hidden = _occluded(start, pos_target, surfaces, p.rule)
-            if point_tree is not None:
-                hidden |= _shadowed(start, pos_target, point_tree, 1.5 * spacing)
-            view[idx[hidden]] = False
-            counts["occluded"] += int(hidden.sum())
+        if p.sight == "stations":
+            view = _station_view(pos, inside, normal, stations, sight_scene, point_tree, offset, spacing, p)
+            counts["occluded"] += int((inside & ~view).sum())
+        else:
+            if p.cull_back_faces and normal is not None and vps is not None:
+                # a facet facing away from every sensor was not seen, whatever lies between: a solid's far side
+                inside &= np.any(np.einsum("fj,sfj->sf", normal, vps[:, None, :] - pos[None]) > 0, axis=0)
+            view = inside.copy()
+            idx = np.flatnonzero(inside)
+            if p.occlusion and idx.size:
+                pos_target = _pos_closest(pos[idx], vps)
+                hidden = _hidden(pos[idx], pos_target, sight_scene, point_tree, offset, spacing, p.rule)
+                view[idx[hidden]] = False
+                counts["occluded"] += int(hidden.sum())
         near = np.zeros(len(pos), dtype=bool)
         if tree is not None and view.any():
             # and a noisy reference element (an earlier ToF scan) is matched within 3σ of its own largest axis
@@ -315,6 +348,39 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str]) -> dict[str, A
                                 method="; ".join(parts))}
 
 
+def _hidden(pos: np.ndarray, target: np.ndarray, scene, point_tree: cKDTree | None, offset: float, spacing: float,
+            rule: str) -> np.ndarray:
+    """Whether recent data hides each element from its sight target (the sight ray starts ``offset`` towards the
+    target, so that the element's own measured surface does not count)."""
+    direction = target - pos
+    length = np.linalg.norm(direction, axis=1, keepdims=True)
+    start = pos + direction / np.maximum(length, 1e-12) * np.minimum(offset, 0.5 * length)
+    hidden = _occluded(start, target, scene, rule)
+    if point_tree is not None:
+        hidden |= _shadowed(start, target, point_tree, 1.5 * spacing)
+    return hidden
+
+
+def _station_view(pos: np.ndarray, inside: np.ndarray, normal: np.ndarray | None, stations: list[Station], scene,
+                  point_tree: cKDTree | None, offset: float, spacing: float, p: OcclusionParams) -> np.ndarray:
+    """In view from at least one station: inside its own volume, facing it, with a clear sight ray to it. Stations
+    are tried in turn on the elements none has seen yet (a loop over the few stations; elements are vectorised)."""
+    view = np.zeros(len(pos), dtype=bool)
+    todo = np.flatnonzero(inside)
+    for eye, contains in stations:
+        if not todo.size:
+            break
+        cand = todo[contains(pos[todo])]
+        if p.cull_back_faces and normal is not None:
+            cand = cand[np.einsum("ij,ij->i", normal[cand], eye[None, :] - pos[cand]) > 0]
+        if p.occlusion and cand.size:
+            cand = cand[~_hidden(pos[cand], np.broadcast_to(eye, (cand.size, 3)), scene, point_tree, offset, spacing,
+                                 p.rule)]
+        view[cand] = True
+        todo = todo[~view[todo]]
+    return view
+
+
 def _sensor_frustum(ctx: StageContext) -> dict[str, Any]:
     frusta = []
     for ds in ctx["recent"]:
@@ -323,12 +389,13 @@ def _sensor_frustum(ctx: StageContext) -> dict[str, Any]:
         raise ValueError("no recent dataset carries viewpoints or a pose file: give the inputs 'viewpoints' or use "
                          "manual_box")
     verts, faces, start = [], [], 0
-    for v, f, _ in frusta:
+    for v, f, _, _ in frusta:
         verts.append(v)
         faces.append(f + start)
         start += len(v)
-    rov = RegionOfView(np.vstack(verts), np.vstack(faces), tuple(len(f) for _, f, _ in frusta))
-    return _look(ctx, rov, [how for _, _, how in frusta])
+    rov = RegionOfView(np.vstack(verts), np.vstack(faces), tuple(len(f) for _, f, _, _ in frusta))
+    stations = [(eye, lambda q, v=v, f=f: _convex_contains(v, f, q)) for v, f, _, eye in frusta]
+    return _look(ctx, rov, [how for _, _, how, _ in frusta], stations)
 
 
 def _manual_box(ctx: StageContext) -> dict[str, Any]:

@@ -252,3 +252,28 @@ def test_a_catalogue_part_fitted_to_a_new_segment_gives_its_centre(registry, sce
     np.testing.assert_allclose(back["part_pose"], seg.part_pose)
     with pytest.raises(ValueError, match="no model file"):
         _run(registry, "keep_unchanged", reference, [new], [change], parts=[{"name": "x", "path": "/nope.obj"}])
+
+
+def test_segments_one_fitted_part_explains_become_one(registry, scene, tmp_path) -> None:
+    # a radius below the gap where the leg hides the corner parts the bracket; its model fitted to the pieces
+    # together joins them into one segment with the part's centre
+    from gdt_pipeline.fuselage_scene import bracket_part
+
+    part_path = tmp_path / "bracket.obj"
+    bracket_part().export(part_path)
+    swept, centre = _bracket_scan(sweep=True)
+    reference, _, _ = scene
+    new = _gauss(swept, 1e-4, "sl")
+    n = new.n_elements
+    change = Change(query=0, score=np.full(n, 50.0), mask=np.ones(n, bool), state=np.full(n, 1, np.uint8))
+    split, _ = _run(registry, "keep_unchanged", reference, [new], [change], segment_radius=0.004)
+    pieces = [g for g in split.segments if not g.artefact]
+    assert len(pieces) >= 2
+    comp, notes = _run(registry, "keep_unchanged", reference, [new], [change], segment_radius=0.004,
+                       parts=[{"name": "bracket", "path": str(part_path)}])
+    real = [g for g in comp.segments if not g.artefact]
+    assert len(real) == 1 and real[0].part == "bracket"
+    assert real[0].size >= sum(g.size for g in pieces)
+    assert np.linalg.norm(real[0].part_centre - centre) < 1e-3
+    assert [g.id for g in comp.segments] == list(range(len(comp.segments)))
+    assert notes["parts"]["segments"][0]["joined_sizes"]

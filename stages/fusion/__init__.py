@@ -254,11 +254,30 @@ def _segments(items: list[CompositeItem], masks: dict[int, np.ndarray], kind: st
     return out
 
 
+def _merged(parts: list[Segment], points: dict[int, np.ndarray]) -> Segment:
+    """One segment of several (their members, positions and scores pooled) under the first one's id."""
+    members: dict[str, list[np.ndarray]] = {}
+    for g in parts:
+        for key, idx in g.members.items():
+            members.setdefault(key, []).append(idx)
+    pts = np.vstack([points[g.id] for g in parts])
+    sizes = np.array([g.size for g in parts], dtype=np.float64)
+    scores = np.array([g.mean_score for g in parts])
+    ok = np.isfinite(scores)
+    mean_score = float(np.average(scores[ok], weights=sizes[ok])) if ok.any() else float("nan")
+    return dataclasses.replace(parts[0], centroid=pts.mean(axis=0), lower=pts.min(axis=0), upper=pts.max(axis=0),
+                               mean_score=mean_score, size=int(sizes.sum()), artefact=False,
+                               members={k: np.sort(np.concatenate(v)) for k, v in members.items()})
+
+
 def _fit_parts(ctx: StageContext, items: list[CompositeItem], segments: list[Segment]) -> list[Segment]:
-    """Fit every catalogue part to every new segment no larger than it; a segment records the best accepted fit."""
+    """Fit the catalogue parts to the new segments. Segments that one fitted part explains together (a bracket's
+    plate and leg, parted where the leg hides the corner from every station) become one segment: its seed is the
+    largest, joined by the nearest other new segments (artefacts too) while all fit in the part's size. A segment
+    records the best accepted fit; an ambiguous or poor fit records none."""
     from pathlib import Path
 
-    from .parts import fit_part, load_part
+    from .parts import distance_to_part, fit_part, load_part
 
     parts = []
     for k, p in enumerate(ctx.params.parts):
@@ -267,25 +286,69 @@ def _fit_parts(ctx: StageContext, items: list[CompositeItem], segments: list[Seg
             raise ValueError(f"parts[{k}] {p.name!r}: no model file {path}")
         parts.append(load_part(p.name, path, p.max_rms, ctx.seed))
     keys = {it.key: it for it in items}
+    new = [g for g in segments if g.kind == "new"]
+    points = {g.id: np.vstack([keys[k].dataset.element_positions()[idx] for k, idx in g.members.items()])
+              for g in new}
+    taken: set[int] = set()
     out, record = [], []
-    for g in segments:
-        if g.kind != "new" or g.artefact:
-            out.append(g)
+    for g in new:  # largest first
+        if g.id in taken or g.artefact:
             continue
-        pts = np.vstack([keys[k].dataset.element_positions()[idx] for k, idx in g.members.items()])
-        extent = float(np.linalg.norm(g.upper - g.lower))
-        fits = [fit_part(pts, part, ctx.rng) for part in parts if extent <= 1.5 * part.diagonal]
-        ok = [f for f in fits if f.accepted]
-        best = min(ok, key=lambda f: f.rms) if ok else None
-        record.append({"segment": g.id, "fitted": None if best is None else best.part,
-                       "tried": {f.part: {"rms": f.rms, "fitness": f.fitness, "ambiguous": f.ambiguous}
-                                 for f in fits}})
-        out.append(g if best is None else dataclasses.replace(
-            g, part=best.part, part_pose=best.pose, part_centre=best.centre, fit_rms=best.rms,
+        taken.add(g.id)
+        best, fits, joined = None, [], [g]
+        for part in parts:
+            reach = 1.2 * part.diagonal
+            others = sorted((h for h in new if h.id not in taken),
+                            key=lambda h: float(np.linalg.norm(h.centroid - g.centroid)))
+            group = [g]
+            lo, hi = g.lower.copy(), g.upper.copy()
+            for h in others:
+                lo2, hi2 = np.minimum(lo, h.lower), np.maximum(hi, h.upper)
+                if np.linalg.norm(hi2 - lo2) <= reach:
+                    group.append(h)
+                    lo, hi = lo2, hi2
+            # the group first (it must fit as one part), then the segment alone
+            for cand in ([group, [g]] if len(group) > 1 else [[g]]):
+                if np.linalg.norm(cand[-1].upper - cand[-1].lower) > 1.5 * part.diagonal and len(cand) == 1:
+                    continue
+                f = fit_part(np.vstack([points[h.id] for h in cand]), part, ctx.rng)
+                fits.append((f, cand))
+                if f.accepted:
+                    break
+        ok = [(f, cand) for f, cand in fits if f.accepted]
+        if ok:
+            best, joined = min(ok, key=lambda fc: (-len(fc[1]), fc[0].rms))
+            # the other pieces the fitted part explains: new segments nearby whose elements lie on its surface
+            model = next(p for p in parts if p.name == best.part)
+            for h in new:
+                if h.id in taken or any(h.id == j.id for j in joined) or \
+                        np.linalg.norm(h.centroid - best.centre) > model.diagonal:
+                    continue
+                if np.mean(distance_to_part(model, best.pose, points[h.id]) <= model.max_rms) >= 0.9:
+                    joined.append(h)
+        taken.update(h.id for h in joined)
+        seg = _merged(joined, points) if len(joined) > 1 else g
+        if best is not None and len(joined) > 1:  # scored again on everything it now holds
+            model = next(p for p in parts if p.name == best.part)
+            d = distance_to_part(model, best.pose, np.vstack([points[h.id] for h in joined]))
+            best = dataclasses.replace(best, rms=float(np.sqrt(np.mean(d**2))),
+                                       fitness=float(np.mean(d <= model.max_rms)))
+        record.append({"segment": g.id, "joined_sizes": [h.size for h in joined[1:]],
+                       "fitted": None if best is None else best.part,
+                       "tried": [{"part": f.part, "elements": int(sum(h.size for h in cand)), "rms": f.rms,
+                                  "fitness": f.fitness, "ambiguous": f.ambiguous} for f, cand in fits]})
+        out.append(seg if best is None else dataclasses.replace(
+            seg, part=best.part, part_pose=best.pose, part_centre=best.centre, fit_rms=best.rms,
             fit_fitness=best.fitness))
+    out += [g for g in new if g.id not in taken]  # the artefacts no part took
+    out += [g for g in segments if g.kind != "new"]
+    out.sort(key=lambda g: (g.kind != "new", g.artefact, -g.size, g.id))
+    renumber = {g.id: k for k, g in enumerate(out)}
+    for r in record:
+        r["segment"] = renumber[r["segment"]]
     ctx.report(parts={"models": {p.name: {"path": str(p.path), "sha256": p.sha256, "max_rms": p.max_rms}
                                  for p in parts}, "segments": record})
-    return out
+    return [dataclasses.replace(g, id=k) for k, g in enumerate(out)]
 
 
 def _fuse(ctx: StageContext, policy: str | None) -> dict[str, Any]:

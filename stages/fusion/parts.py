@@ -134,3 +134,15 @@ def fit_part(points: np.ndarray, part: PartModel, rng: np.random.Generator, max_
     fitness = float(np.mean(d <= part.max_rms))
     return PartFit(part=part.name, pose=pose, centre=centre, rms=rms, fitness=fitness,
                    accepted=rms <= part.max_rms and fitness >= 0.9 and not ambiguous, ambiguous=ambiguous)
+
+
+def distance_to_part(part: PartModel, pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Each point's distance to the surface of ``part`` placed at ``pose`` (part frame to twin)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(part.vertices.astype(np.float32)),
+                        o3d.core.Tensor(part.faces.astype(np.uint32)))
+    inv = np.linalg.inv(pose)
+    local = points @ inv[:3, :3].T + inv[:3, 3]
+    return scene.compute_distance(o3d.core.Tensor(local.astype(np.float32))).numpy().astype(np.float64)

@@ -186,3 +186,25 @@ def test_sight_to_the_stations_where_the_plane_of_sight_cuts_through_the_scene(r
     away = np.flatnonzero(np.all(np.einsum("ij,sij->si", cube.face_normals,
                                            np.stack([a, b])[:, None, :] - cube.triangles_center[None]) <= 0, axis=0))
     assert away.size and not views["stations"][away].any()
+
+
+def test_a_confirmed_thin_part_hides_the_face_right_behind_it(registry, tmp_path) -> None:
+    # a 4 mm plate, measured on its front, covers a cube's face that touches its back (a frame web behind its
+    # flange); the measured surface's rays start 3 cm out (3 × a 1 cm point spacing), past the plate: only the plate's
+    # CAD facets, confirmed by the scan, hide the face
+    eye = np.array([0.0, 0.0, 0.0])
+    plate = trimesh.creation.box(extents=(0.004, 0.6, 0.6))
+    plate.apply_translation((2.002, 0, 0))
+    cube = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    cube.apply_translation((2.104, 0, 0))
+    reference = Composite((_item("E0_plate", plate), _item("E0_cube", cube)))
+    scan = _scan(_grid(2.0, -0.3, 0.3, -0.3, 0.3, 0.01), eye)
+    front = np.flatnonzero(cube.face_normals[:, 0] < -0.9)
+    views = {}
+    for confirmed in (False, True):
+        ctx = _ctx(registry, "manual_box", {"lower": [1, -1, -1], "upper": [3, 1, 1],
+                                            "confirmed_occlude": confirmed}, [scan], reference, tmp_path)
+        rov = registry.get("manual_box").run(ctx)["rov"]
+        views[confirmed] = rov.in_view["E0_cube"][front]
+        assert rov.matched["E0_plate"][plate.face_normals[:, 0] < -0.9].all()
+    assert views[False].all() and not views[True].any()

@@ -46,6 +46,8 @@ class OcclusionParams(BaseModel):
                                                     "view (needs outward facet normals, as CAD solids have).")
     viewpoints: list[list[float]] | None = Field(None, description="Sensor positions for the POS (default: those "
                                                                    "the inputs carry).")
+    confirmed_occlude: bool = Field(True, description="Reference facets the recent data matches (confirmed present) "
+                                                      "hide what lies behind them too, seen from their front.")
     sight: Literal["plane", "stations"] = Field(
         "plane", description="plane: the sight ray runs to the Plane of Sight through all sensor positions (the "
                              "paper; for sensors along one sweep); stations: to each sensor whose own frustum holds "
@@ -297,6 +299,8 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list
     radius = np.maximum(match, 3.0 * np.broadcast_to(sig, (len(rpts),))) if len(rpts) else np.zeros(0)
     sig3 = np.broadcast_to(sig, (len(rpts),))
     in_view, matched, counts = {}, {}, {"inside": 0, "occluded": 0, "in_view": 0, "unmatched_in_view": 0}
+    # first pass: which reference elements inside the volume the recent data matches (confirms present)
+    looked = []
     for item in reference.items:
         pos = item.dataset.element_positions()
         inside = rov.contains(pos) & item.visible
@@ -304,39 +308,46 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list
         if item.dataset.faces is not None:
             tri = item.dataset.points[item.dataset.faces]
             normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        if p.sight == "stations":
-            view = _station_view(pos, inside, normal, stations, sight_scene, point_tree, offset, spacing, p)
-            counts["occluded"] += int((inside & ~view).sum())
-        else:
-            if p.cull_back_faces and normal is not None and vps is not None:
-                # a facet facing away from every sensor was not seen, whatever lies between: a solid's far side
-                inside &= np.any(np.einsum("fj,sfj->sf", normal, vps[:, None, :] - pos[None]) > 0, axis=0)
-            view = inside.copy()
-            idx = np.flatnonzero(inside)
-            if p.occlusion and idx.size:
-                pos_target = _pos_closest(pos[idx], vps)
-                hidden = _hidden(pos[idx], pos_target, sight_scene, point_tree, offset, spacing, p.rule)
-                view[idx[hidden]] = False
-                counts["occluded"] += int(hidden.sum())
         near = np.zeros(len(pos), dtype=bool)
-        if tree is not None and view.any():
+        if tree is not None and inside.any():
             # and a noisy reference element (an earlier ToF scan) is matched within 3σ of its own largest axis
-            own = np.zeros(int(view.sum()))
+            own = np.zeros(int(inside.sum()))
             if item.dataset.uncertainty is not None:
-                own = 3.0 * np.sqrt(np.linalg.eigvalsh(item.dataset.element_covariance()[view])[:, -1])
+                own = 3.0 * np.sqrt(np.linalg.eigvalsh(item.dataset.element_covariance()[inside])[:, -1])
             reach = float(max(radius.max(), own.max(initial=0.0)))
-            d, j = tree.query(pos[view], k=32, distance_upper_bound=reach)
+            d, j = tree.query(pos[inside], k=32, distance_upper_bound=reach)
             ok = np.isfinite(d)
             jj = np.where(ok, j, 0)
             hit = ok & (d <= np.maximum(radius[jj], own[:, None]))
             if normal is not None:
                 # on a facet, recent data must also lie in its plane within the uncertainties (3σ of either
                 # side): a surface 5 mm behind a removed bracket's plate is not the plate
-                unit = normal[view] / np.maximum(np.linalg.norm(normal[view], axis=1, keepdims=True), 1e-300)
-                off = np.abs(np.einsum("ij,ikj->ik", unit, rpts[jj] - pos[view][:, None, :]))
+                unit = normal[inside] / np.maximum(np.linalg.norm(normal[inside], axis=1, keepdims=True), 1e-300)
+                off = np.abs(np.einsum("ij,ikj->ik", unit, rpts[jj] - pos[inside][:, None, :]))
                 hit &= off <= np.maximum(3.0 * sig3[jj], own[:, None])
-            near[np.flatnonzero(view)] = np.any(hit, axis=1)
-        in_view[item.key], matched[item.key] = view, near
+            near[np.flatnonzero(inside)] = np.any(hit, axis=1)
+        looked.append((item, pos, inside, normal, near))
+    # reference facets the recent data confirms hide what lies behind them, seen from their front: the measured
+    # surface of a thin part at grazing angles has holes where the CAD facet it confirms has none
+    confirmed = _confirmed([(it.dataset, nr) for it, _, _, nr_normal, nr in looked if nr_normal is not None]) \
+        if p.occlusion and p.confirmed_occlude else None
+    for item, pos, inside, normal, near in looked:
+        if p.sight == "stations":
+            view = _station_view(pos, inside, normal, stations, sight_scene, point_tree, offset, spacing, p,
+                                 confirmed)
+            counts["occluded"] += int((inside & ~view).sum())
+        else:
+            if p.cull_back_faces and normal is not None and vps is not None:
+                # a facet facing away from every sensor was not seen, whatever lies between: a solid's far side
+                inside = inside & np.any(np.einsum("fj,sfj->sf", normal, vps[:, None, :] - pos[None]) > 0, axis=0)
+            view = inside.copy()
+            idx = np.flatnonzero(inside)
+            if p.occlusion and idx.size:
+                pos_target = _pos_closest(pos[idx], vps)
+                hidden = _hidden(pos[idx], pos_target, sight_scene, point_tree, offset, spacing, p.rule, confirmed)
+                view[idx[hidden]] = False
+                counts["occluded"] += int(hidden.sum())
+        in_view[item.key], matched[item.key] = view, near & view
         counts["inside"] += int(inside.sum())
         counts["in_view"] += int(view.sum())
         counts["unmatched_in_view"] += int((view & ~near).sum())
@@ -348,21 +359,64 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list
                                 method="; ".join(parts))}
 
 
+def _confirmed(items: list[tuple[Dataset, np.ndarray]]):  # -> (RaycastingScene, facet normals) | None
+    """The reference facets the recent data matched, as one ray-casting scene with their normals."""
+    import open3d as o3d
+
+    verts, faces, normals, start = [], [], [], 0
+    for ds, near in items:
+        f = np.asarray(ds.faces)[near]
+        if not len(f):
+            continue
+        tri = ds.points[f]
+        verts.append(tri.reshape(-1, 3))
+        faces.append(np.arange(start, start + 3 * len(f)).reshape(-1, 3))
+        normals.append(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+        start += 3 * len(f)
+    if not faces:
+        return None
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.vstack(verts).astype(np.float32)),
+                        o3d.core.Tensor(np.vstack(faces).astype(np.uint32)))
+    return scene, np.vstack(normals)
+
+
+def _blocked_by_confirmed(origins: np.ndarray, targets: np.ndarray, confirmed) -> np.ndarray:
+    """Whether each sight segment passes through a confirmed facet from its front (a solid's far faces, seen from
+    behind on the way out, do not count: closed CAD solids would otherwise cancel by parity)."""
+    import open3d as o3d
+
+    if confirmed is None or not len(origins):
+        return np.zeros(len(origins), dtype=bool)
+    scene, normals = confirmed
+    direction = targets - origins
+    ans = scene.list_intersections(o3d.core.Tensor(np.hstack([origins, direction]).astype(np.float32)))
+    split, t, prim = ans["ray_splits"].numpy(), ans["t_hit"].numpy(), ans["primitive_ids"].numpy()
+    ray = np.repeat(np.arange(len(origins)), np.diff(split))
+    front = np.einsum("ij,ij->i", normals[prim], direction[ray]) > 0
+    hit = (t > 0) & (t < 1) & front
+    return np.bincount(ray[hit], minlength=len(origins)) > 0
+
+
 def _hidden(pos: np.ndarray, target: np.ndarray, scene, point_tree: cKDTree | None, offset: float, spacing: float,
-            rule: str) -> np.ndarray:
-    """Whether recent data hides each element from its sight target (the sight ray starts ``offset`` towards the
-    target, so that the element's own measured surface does not count)."""
+            rule: str, confirmed=None) -> np.ndarray:
+    """Whether recent data, or a reference facet it confirmed, hides each element from its sight target (the sight
+    ray starts ``offset`` towards the target, so that the element's own measured surface does not count)."""
     direction = target - pos
     length = np.linalg.norm(direction, axis=1, keepdims=True)
     start = pos + direction / np.maximum(length, 1e-12) * np.minimum(offset, 0.5 * length)
     hidden = _occluded(start, target, scene, rule)
     if point_tree is not None:
         hidden |= _shadowed(start, target, point_tree, 1.5 * spacing)
-    return hidden
+    # confirmed facets are exact geometry without noise: their rays start just off the element, so that a thin part
+    # (a flange thinner than the offset measured surfaces need) still hides the face it covers
+    near_start = pos + direction / np.maximum(length, 1e-12) * np.minimum(1e-3 * offset, 0.5 * length)
+    return hidden | _blocked_by_confirmed(near_start, target, confirmed)
 
 
 def _station_view(pos: np.ndarray, inside: np.ndarray, normal: np.ndarray | None, stations: list[Station], scene,
-                  point_tree: cKDTree | None, offset: float, spacing: float, p: OcclusionParams) -> np.ndarray:
+                  point_tree: cKDTree | None, offset: float, spacing: float, p: OcclusionParams, confirmed=None
+                  ) -> np.ndarray:
     """In view from at least one station: inside its own volume, facing it, with a clear sight ray to it. Stations
     are tried in turn on the elements none has seen yet (a loop over the few stations; elements are vectorised)."""
     view = np.zeros(len(pos), dtype=bool)
@@ -375,7 +429,7 @@ def _station_view(pos: np.ndarray, inside: np.ndarray, normal: np.ndarray | None
             cand = cand[np.einsum("ij,ij->i", normal[cand], eye[None, :] - pos[cand]) > 0]
         if p.occlusion and cand.size:
             cand = cand[~_hidden(pos[cand], np.broadcast_to(eye, (cand.size, 3)), scene, point_tree, offset, spacing,
-                                 p.rule)]
+                                 p.rule, confirmed)]
         view[cand] = True
         todo = todo[~view[todo]]
     return view

@@ -5,9 +5,10 @@ Geometry (metres; fuselage axis along x, z up): a skin panel (radius 1.95 m, 1.6
 thick), three frames (web and inner flange) at a 0.53 m pitch, seven stringers; brackets are small L-shaped parts
 riveted to the frame webs, where a cabin is attached. E0 is the CAD: skin, frames, stringers and two brackets.
 E1 is a structured-light scan (Artec Eva class, sub-millimetre noise) from six stations 0.9 m inside the cabin looking
-out at the skin; one of the two CAD brackets was removed and five new ones were fitted. With ``sweep`` the scan adds
-28 stations within the frame bays looking at the four bracket-carrying web faces from 0.5 m at 7 angles each (the
-way one scans brackets, which sit behind the frames' inner flanges, so that their models can be fitted).
+out at the skin, and (``sweep``, the default) 28 handheld stations within the frame bays looking at the four
+bracket-carrying web faces from 0.5 m at 7 angles each: the way one scans brackets, which sit behind the frames'
+inner flanges, so that their catalogue models can be fitted. One of the two CAD brackets was removed and five new
+ones were fitted.
 ``part_bracket.obj`` is the bracket's catalogue model in its own frame (its solid centre at the origin), for the
 fusion's part fitting.
 
@@ -152,7 +153,7 @@ def bracket_part():  # -> trimesh.Trimesh
 
 
 def make_fuselage_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: float = 30000.0,
-                        web_points_per_m2: float = 40000.0, sweep: bool = False) -> dict[str, EpochFiles]:
+                        web_points_per_m2: float = 40000.0, sweep: bool = True) -> dict[str, EpochFiles]:
     """Write the fuselage scene's CAD (E0) and its precise scan (E1) with ground truth into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

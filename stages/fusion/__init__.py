@@ -433,7 +433,7 @@ def _fuse(ctx: StageContext, policy: str | None) -> dict[str, Any]:
 @hookimpl
 def gdt_stages() -> list[StageSpec]:
     """The built-in fusions."""
-    common = {"family": "fusion", "version": "1.1.0", "requires": ("recent",),
+    common = {"family": "fusion", "version": "1.2.0", "requires": ("recent",),
               "optional": ("reference", "change", "rov"), "provides": ("composite",), "check": _check}
     keep = "Known data stays; changed new elements come in; unchanged new ones are hidden."
     return [StageSpec(name="keep_unchanged", params=KeepUnchangedParams, run=_keep_unchanged, description=keep,

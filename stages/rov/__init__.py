@@ -461,7 +461,7 @@ def _manual_box(ctx: StageContext) -> dict[str, Any]:
 @hookimpl
 def gdt_stages() -> list[StageSpec]:
     """The built-in region-of-view stages."""
-    common = {"family": "rov", "version": "1.0.0", "requires": ("recent",), "optional": ("reference",),
+    common = {"family": "rov", "version": "1.1.0", "requires": ("recent",), "optional": ("reference",),
               "provides": ("rov",)}
     return [
         StageSpec(name="sensor_frustum", params=FrustumParams, run=_sensor_frustum,

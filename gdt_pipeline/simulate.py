@@ -78,13 +78,16 @@ def _rays(spec: ScannerSpec, eye: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def raycasting_scene(meshes: list):  # -> o3d.t.geometry.RaycastingScene
-    """An Open3D raycasting scene holding the triangles of ``meshes`` (anything with vertices and faces)."""
+    """An Open3D raycasting scene holding the triangles of ``meshes``: objects with vertices and faces, or
+    (vertices, faces) pairs; meshes without faces are skipped."""
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
     for m in meshes:
-        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, dtype=np.float32)),
-                            o3d.core.Tensor(np.asarray(m.faces, dtype=np.uint32)))
+        verts, faces = (m.vertices, m.faces) if hasattr(m, "faces") else m
+        if len(faces):
+            scene.add_triangles(o3d.core.Tensor(np.asarray(verts, dtype=np.float32)),
+                                o3d.core.Tensor(np.asarray(faces, dtype=np.uint32)))
     return scene
 
 

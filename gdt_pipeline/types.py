@@ -394,6 +394,17 @@ class Dataset:
             return self.points
         return self.points[self.faces].mean(axis=1)
 
+    def facet_normals(self, idx: np.ndarray | None = None, unit: bool = False) -> np.ndarray:
+        """Normals of the facets (all, or those at ``idx``) by the right-hand rule: twice the facet's area long, or
+        of unit length with ``unit``."""
+        if self.faces is None:
+            raise ValueError(f"dataset {self.name!r} is a point set: it has no facets")
+        tri = self.points[self.faces if idx is None else self.faces[idx]]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        if unit:
+            normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        return normal
+
     def element_covariance(self) -> np.ndarray:
         """Per-element covariance ``(E,3,3)`` of the attached uncertainty (second moments of a box)."""
         if self.uncertainty is None:
@@ -456,14 +467,19 @@ class RegionOfView:
         mesh.apply_translation((hi + lo) / 2)
         return cls(mesh.vertices, mesh.faces)
 
-    def contains(self, points: np.ndarray) -> np.ndarray:
-        """Boolean mask of the points strictly inside any of the closed parts (parity of ray intersections each)."""
+    def contains(self, points: np.ndarray, part: int | None = None) -> np.ndarray:
+        """Boolean mask of the points strictly inside any of the closed parts, or inside part ``part`` only (parity
+        of ray intersections each)."""
         import open3d as o3d  # imported here: open3d is heavy and only a region-of-view query needs it
 
         pts = o3d.core.Tensor(np.asarray(points, dtype=np.float32).reshape(-1, 3))
         inside = np.zeros(pts.shape[0], dtype=bool)
         start = 0
-        for n in self.parts:  # one scene per part: overlapping closed parts would cancel each other's parity
+        # one scene per part: overlapping closed parts would cancel each other's parity
+        for k, n in enumerate(self.parts):
+            if part is not None and k != part:
+                start += n
+                continue
             scene = o3d.t.geometry.RaycastingScene()
             faces = self.faces[start:start + n]
             used, local = np.unique(faces, return_inverse=True)

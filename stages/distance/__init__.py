@@ -254,10 +254,8 @@ def _welch(ctx: StageContext) -> dict[str, Any]:
         for g in groups:
             ref = reference.items[int(g.ref_items[0])].dataset
             if ds.faces is not None or ref.faces is not None:
-                tri = (ds.points[ds.faces[g.elements]] if ds.faces is not None
-                       else ref.points[ref.faces[g.ref_elements]])
-                nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-                nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+                nrm = (ds.facet_normals(g.elements, unit=True) if ds.faces is not None
+                       else ref.facet_normals(g.ref_elements, unit=True))
             else:
                 if cloud_normals is None:
                     cloud_normals = estimate_normals(ds.points, ctx.params.normal_neighbours)

@@ -27,6 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
 from scipy.spatial import ConvexHull, cKDTree
 
 from gdt_pipeline import Composite, Dataset, RegionOfView, StageContext, StageSpec, hookimpl
+from gdt_pipeline.simulate import raycasting_scene
 
 
 class OcclusionParams(BaseModel):
@@ -199,41 +200,25 @@ def _pos_closest(points: np.ndarray, viewpoints: np.ndarray) -> np.ndarray:
     return centre + best[:, :1] * e1 + best[:, 1:] * e2
 
 
-def _convex_contains(verts: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Whether each point lies inside a closed convex mesh (a frustum): behind every facet's plane."""
-    tri = verts[faces]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normal[np.einsum("ij,ij->i", normal, tri[:, 0] - verts.mean(axis=0)) < 0] *= -1  # outward, whatever the winding
-    return np.all(np.einsum("fj,pfj->pf", normal, points[:, None, :] - tri[None, :, 0]) <= 0, axis=1)
-
-
-def _sight_scene(tris: list[tuple[np.ndarray, np.ndarray]]):  # -> o3d.t.geometry.RaycastingScene | None
-    """The recent surfaces as one ray-casting scene (built once for all sight rays)."""
-    import open3d as o3d
-
-    if not any(len(f) for _, f in tris):
-        return None
-    scene = o3d.t.geometry.RaycastingScene()
-    for v, f in tris:
-        if len(f):
-            scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
-    return scene
-
-
 def _occluded(origins: np.ndarray, targets: np.ndarray, scene, rule: str) -> np.ndarray:
     """Whether each sight segment crosses the recent surfaces (an odd number of times, or at all)."""
-    import open3d as o3d
-
     if not len(origins) or scene is None:
         return np.zeros(len(origins), dtype=bool)
+    ray, _ = _segment_hits(scene, origins, targets)
+    counts = np.bincount(ray, minlength=len(origins))
+    return counts % 2 == 1 if rule == "odd" else counts > 0
+
+
+def _segment_hits(scene, origins: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every crossing of the scene strictly between each origin and its target: (segment index, triangle id)."""
+    import open3d as o3d
+
     rays = np.hstack([origins, targets - origins]).astype(np.float32)  # direction unnormalised: t in [0, 1] = segment
     ans = scene.list_intersections(o3d.core.Tensor(rays))
-    split = ans["ray_splits"].numpy()
     t = ans["t_hit"].numpy()
+    ray = np.repeat(np.arange(len(origins)), np.diff(ans["ray_splits"].numpy()))
     on_segment = (t > 0) & (t < 1)
-    ray = np.repeat(np.arange(len(origins)), np.diff(split))
-    counts = np.bincount(ray[on_segment], minlength=len(origins))
-    return counts % 2 == 1 if rule == "odd" else counts > 0
+    return ray[on_segment], ans["primitive_ids"].numpy()[on_segment]
 
 
 def _shadowed(origins: np.ndarray, targets: np.ndarray, tree: cKDTree, radius: float, chunk: int = 2_000_000
@@ -287,7 +272,7 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list
             v, f, method = _surface(ds, spacing)
             surfaces.append((v, f))
             how.append(f"{ds.name}: {method} ({len(f)} triangles)")
-    sight_scene = _sight_scene(surfaces) if p.occlusion else None
+    sight_scene = raycasting_scene(surfaces) if p.occlusion and any(len(f) for _, f in surfaces) else None
     tree = cKDTree(rpts) if len(rpts) else None
     # measured points in the line of sight hide an element even where the intermediate surface has holes (thin
     # parts seen at grazing angles): recent point clouds only, meshes are their own surface
@@ -304,10 +289,7 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list
     for item in reference.items:
         pos = item.dataset.element_positions()
         inside = rov.contains(pos) & item.visible
-        normal = None
-        if item.dataset.faces is not None:
-            tri = item.dataset.points[item.dataset.faces]
-            normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        normal = item.dataset.facet_normals() if item.dataset.faces is not None else None
         near = np.zeros(len(pos), dtype=bool)
         if tree is not None and inside.any():
             # and a noisy reference element (an earlier ToF scan) is matched within 3σ of its own largest axis
@@ -360,42 +342,25 @@ def _look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list
 
 
 def _confirmed(items: list[tuple[Dataset, np.ndarray]]):  # -> (RaycastingScene, facet normals) | None
-    """The reference facets the recent data matched, as one ray-casting scene with their normals."""
-    import open3d as o3d
-
-    verts, faces, normals, start = [], [], [], 0
-    for ds, near in items:
-        f = np.asarray(ds.faces)[near]
-        if not len(f):
-            continue
-        tri = ds.points[f]
-        verts.append(tri.reshape(-1, 3))
-        faces.append(np.arange(start, start + 3 * len(f)).reshape(-1, 3))
-        normals.append(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
-        start += 3 * len(f)
-    if not faces:
+    """The reference facets the recent data matched, as one ray-casting scene (one geometry, so that Open3D's
+    primitive ids index the stacked normals) with their normals."""
+    tris = [ds.points[ds.faces[near]] for ds, near in items if near.any()]
+    if not tris:
         return None
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.vstack(verts).astype(np.float32)),
-                        o3d.core.Tensor(np.vstack(faces).astype(np.uint32)))
-    return scene, np.vstack(normals)
+    soup = np.vstack(tris)
+    scene = raycasting_scene([(soup.reshape(-1, 3), np.arange(3 * len(soup)).reshape(-1, 3))])
+    return scene, np.vstack([ds.facet_normals(near) for ds, near in items if near.any()])
 
 
 def _blocked_by_confirmed(origins: np.ndarray, targets: np.ndarray, confirmed) -> np.ndarray:
     """Whether each sight segment passes through a confirmed facet from its front (a solid's far faces, seen from
     behind on the way out, do not count: closed CAD solids would otherwise cancel by parity)."""
-    import open3d as o3d
-
     if confirmed is None or not len(origins):
         return np.zeros(len(origins), dtype=bool)
     scene, normals = confirmed
-    direction = targets - origins
-    ans = scene.list_intersections(o3d.core.Tensor(np.hstack([origins, direction]).astype(np.float32)))
-    split, t, prim = ans["ray_splits"].numpy(), ans["t_hit"].numpy(), ans["primitive_ids"].numpy()
-    ray = np.repeat(np.arange(len(origins)), np.diff(split))
-    front = np.einsum("ij,ij->i", normals[prim], direction[ray]) > 0
-    hit = (t > 0) & (t < 1) & front
-    return np.bincount(ray[hit], minlength=len(origins)) > 0
+    ray, prim = _segment_hits(scene, origins, targets)
+    front = np.einsum("ij,ij->i", normals[prim], (targets - origins)[ray]) > 0
+    return np.bincount(ray[front], minlength=len(origins)) > 0
 
 
 def _hidden(pos: np.ndarray, target: np.ndarray, scene, point_tree: cKDTree | None, offset: float, spacing: float,
@@ -448,7 +413,7 @@ def _sensor_frustum(ctx: StageContext) -> dict[str, Any]:
         faces.append(f + start)
         start += len(v)
     rov = RegionOfView(np.vstack(verts), np.vstack(faces), tuple(len(f) for _, f, _, _ in frusta))
-    stations = [(eye, lambda q, v=v, f=f: _convex_contains(v, f, q)) for v, f, _, eye in frusta]
+    stations = [(eye, lambda q, k=k: rov.contains(q, part=k)) for k, (_, _, _, eye) in enumerate(frusta)]
     return _look(ctx, rov, [how for _, _, how, _ in frusta], stations)
 
 

@@ -156,9 +156,7 @@ def _sensor_model(ctx: StageContext) -> dict[str, Any]:
         cos = None
         if ctx.params.incidence:
             if ds.faces is not None:
-                tri = ds.points[ds.faces]
-                normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-                normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+                normals = ds.facet_normals(unit=True)
             else:
                 normals = estimate_normals(ds.points, ctx.params.normal_neighbours)
             cos = np.einsum("ij,ij->i", normals, beam / np.maximum(rng_[:, None], 1e-300))

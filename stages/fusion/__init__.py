@@ -270,6 +270,18 @@ def _merged(parts: list[Segment], points: dict[int, np.ndarray]) -> Segment:
                                members={k: np.sort(np.concatenate(v)) for k, v in members.items()})
 
 
+def _nearest_within(seed: Segment, others: list[Segment], reach: float) -> list[Segment]:
+    """``seed`` and, nearest first, the other segments whose boxes keep the group's box diagonal within ``reach``."""
+    group, lo, hi = [seed], seed.lower, seed.upper
+    for h in sorted((h for h in others if h.id != seed.id),
+                    key=lambda h: float(np.linalg.norm(h.centroid - seed.centroid))):
+        lo2, hi2 = np.minimum(lo, h.lower), np.maximum(hi, h.upper)
+        if np.linalg.norm(hi2 - lo2) <= reach:
+            group.append(h)
+            lo, hi = lo2, hi2
+    return group
+
+
 def _fit_parts(ctx: StageContext, items: list[CompositeItem], segments: list[Segment]) -> list[Segment]:
     """Fit the catalogue parts to the new segments. Segments that one fitted part explains together (a bracket's
     plate and leg, parted where the leg hides the corner from every station) become one segment: its seed is the
@@ -277,7 +289,7 @@ def _fit_parts(ctx: StageContext, items: list[CompositeItem], segments: list[Seg
     records the best accepted fit; an ambiguous or poor fit records none."""
     from pathlib import Path
 
-    from .parts import distance_to_part, fit_part, load_part
+    from .parts import fit_part, load_part
 
     parts = []
     for k, p in enumerate(ctx.params.parts):
@@ -295,48 +307,42 @@ def _fit_parts(ctx: StageContext, items: list[CompositeItem], segments: list[Seg
         if g.id in taken or g.artefact:
             continue
         taken.add(g.id)
-        best, fits, joined = None, [], [g]
+        fits = []
         for part in parts:
-            reach = 1.2 * part.diagonal
-            others = sorted((h for h in new if h.id not in taken),
-                            key=lambda h: float(np.linalg.norm(h.centroid - g.centroid)))
-            group = [g]
-            lo, hi = g.lower.copy(), g.upper.copy()
-            for h in others:
-                lo2, hi2 = np.minimum(lo, h.lower), np.maximum(hi, h.upper)
-                if np.linalg.norm(hi2 - lo2) <= reach:
-                    group.append(h)
-                    lo, hi = lo2, hi2
-            # the group first (it must fit as one part), then the segment alone
-            for cand in ([group, [g]] if len(group) > 1 else [[g]]):
-                if np.linalg.norm(cand[-1].upper - cand[-1].lower) > 1.5 * part.diagonal and len(cand) == 1:
+            group = _nearest_within(g, [h for h in new if h.id not in taken], 1.2 * part.diagonal)
+            # the group first (it must fit as one part), then the segment alone if it is no larger than the part
+            for cand in ([group] if len(group) > 1 else []) + [[g]]:
+                if len(cand) == 1 and np.linalg.norm(g.upper - g.lower) > 1.5 * part.diagonal:
                     continue
                 f = fit_part(np.vstack([points[h.id] for h in cand]), part, ctx.rng)
-                fits.append((f, cand))
+                fits.append((f, part, cand))
                 if f.accepted:
                     break
-        ok = [(f, cand) for f, cand in fits if f.accepted]
+        ok = [fit for fit in fits if fit[0].accepted]
+        best, joined = None, [g]
         if ok:
-            best, joined = min(ok, key=lambda fc: (-len(fc[1]), fc[0].rms))
+            best, model, cand = min(ok, key=lambda fpc: (-len(fpc[2]), fpc[0].rms))
+            to_part = np.linalg.inv(best.pose)
+            d = [model.distance(to_part, np.vstack([points[h.id] for h in cand]))]
+            joined, held = list(cand), {h.id for h in cand}
             # the other pieces the fitted part explains: new segments nearby whose elements lie on its surface
-            model = next(p for p in parts if p.name == best.part)
             for h in new:
-                if h.id in taken or any(h.id == j.id for j in joined) or \
-                        np.linalg.norm(h.centroid - best.centre) > model.diagonal:
+                if h.id in taken or h.id in held or np.linalg.norm(h.centroid - best.centre) > model.diagonal:
                     continue
-                if np.mean(distance_to_part(model, best.pose, points[h.id]) <= model.max_rms) >= 0.9:
+                dh = model.distance(to_part, points[h.id])
+                if np.mean(dh <= model.max_rms) >= 0.9:
                     joined.append(h)
+                    d.append(dh)
+            if len(joined) > 1:  # scored again on everything it now holds
+                d_all = np.concatenate(d)
+                best = dataclasses.replace(best, rms=float(np.sqrt(np.mean(d_all**2))),
+                                           fitness=float(np.mean(d_all <= model.max_rms)))
         taken.update(h.id for h in joined)
         seg = _merged(joined, points) if len(joined) > 1 else g
-        if best is not None and len(joined) > 1:  # scored again on everything it now holds
-            model = next(p for p in parts if p.name == best.part)
-            d = distance_to_part(model, best.pose, np.vstack([points[h.id] for h in joined]))
-            best = dataclasses.replace(best, rms=float(np.sqrt(np.mean(d**2))),
-                                       fitness=float(np.mean(d <= model.max_rms)))
         record.append({"segment": g.id, "joined_sizes": [h.size for h in joined[1:]],
                        "fitted": None if best is None else best.part,
                        "tried": [{"part": f.part, "elements": int(sum(h.size for h in cand)), "rms": f.rms,
-                                  "fitness": f.fitness, "ambiguous": f.ambiguous} for f, cand in fits]})
+                                  "fitness": f.fitness, "ambiguous": f.ambiguous} for f, _, cand in fits]})
         out.append(seg if best is None else dataclasses.replace(
             seg, part=best.part, part_pose=best.pose, part_centre=best.centre, fit_rms=best.rms,
             fit_fitness=best.fitness))

@@ -8,12 +8,15 @@ pose, the fitted model's centre and the fit's RMS, which is the paper's "geometr
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from gdt_pipeline.simulate import raycasting_scene
 
 
 @dataclass(frozen=True)
@@ -30,6 +33,17 @@ class PartModel:
     max_rms: float
     vertices: np.ndarray
     faces: np.ndarray
+
+    @functools.cached_property
+    def _scene(self):  # -> o3d.t.geometry.RaycastingScene, built once per part for all its fits
+        return raycasting_scene([(self.vertices, self.faces)])
+
+    def distance(self, to_part: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Each point's distance to the part's surface, after ``to_part`` (4x4) takes it into the part's frame."""
+        import open3d as o3d
+
+        local = points @ to_part[:3, :3].T + to_part[:3, 3]
+        return self._scene.compute_distance(o3d.core.Tensor(local.astype(np.float32))).numpy().astype(np.float64)
 
 
 @dataclass(frozen=True)
@@ -96,14 +110,6 @@ def fit_part(points: np.ndarray, part: PartModel, rng: np.random.Generator, max_
     est = reg.TransformationEstimationPointToPlane()
     crit = reg.ICPConvergenceCriteria(max_iteration=40)
     centroid = src_pts.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(part.vertices.astype(np.float32)),
-                        o3d.core.Tensor(part.faces.astype(np.uint32)))
-
-    def surface_distance(t: np.ndarray, p: np.ndarray) -> np.ndarray:
-        local = p @ t[:3, :3].T + t[:3, 3]
-        return scene.compute_distance(o3d.core.Tensor(local.astype(np.float32))).numpy().astype(np.float64)
-
     tried: list[tuple[float, np.ndarray]] = []
     # ICP moves the segment onto the part; the part's pose in the twin is the inverse. Each start is scored by the
     # RMS of the exact point-to-surface distance of the points it used
@@ -115,7 +121,7 @@ def fit_part(points: np.ndarray, part: PartModel, rng: np.random.Generator, max_
         for reach in (0.25, 0.08, 0.02):
             t = reg.registration_icp(source, target, reach * part.diagonal, t, est, crit).transformation
         t = np.asarray(t)
-        tried.append((float(np.sqrt(np.mean(surface_distance(t, src_pts) ** 2))), t))
+        tried.append((float(np.sqrt(np.mean(part.distance(t, src_pts) ** 2))), t))
     best = min(tried, key=lambda st: st[0])
     pose = np.linalg.inv(best[1])
     centre = pose[:3, :3] @ part.centre + pose[:3, 3]
@@ -129,20 +135,8 @@ def fit_part(points: np.ndarray, part: PartModel, rng: np.random.Generator, max_
                 ambiguous = True
                 break
     # the fit is scored on every element, not only the ones ICP used
-    d = surface_distance(best[1], points)
+    d = part.distance(best[1], points)
     rms = float(np.sqrt(np.mean(d**2)))
     fitness = float(np.mean(d <= part.max_rms))
     return PartFit(part=part.name, pose=pose, centre=centre, rms=rms, fitness=fitness,
                    accepted=rms <= part.max_rms and fitness >= 0.9 and not ambiguous, ambiguous=ambiguous)
-
-
-def distance_to_part(part: PartModel, pose: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Each point's distance to the surface of ``part`` placed at ``pose`` (part frame to twin)."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(part.vertices.astype(np.float32)),
-                        o3d.core.Tensor(part.faces.astype(np.uint32)))
-    inv = np.linalg.inv(pose)
-    local = points @ inv[:3, :3].T + inv[:3, 3]
-    return scene.compute_distance(o3d.core.Tensor(local.astype(np.float32))).numpy().astype(np.float64)

@@ -12,6 +12,7 @@ comes in as new, never silently dropped.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -91,50 +92,41 @@ class CalibratedParams(BaseModel):
                                "with the number of scans).")
 
 
-def _pooled(ctx: StageContext, scores: list[Scores]) -> dict[str, Any]:
-    """One τ for the epoch: the simulated null pairs drawn over all datasets in proportion to their elements."""
-    p = ctx.params
-    if any(s.simulate is None for s in scores):
-        bad = next(s for s in scores if s.simulate is None)
-        raise ValueError(f"measure {bad.measure!r} cannot simulate unchanged pairs; use fixed or significance")
+def _pooled(scores: list[Scores]) -> Callable[[np.random.Generator, int], np.ndarray]:
+    """A simulator of the whole epoch: ``n`` null pairs drawn over all datasets in proportion to their elements."""
     sizes = np.array([np.isfinite(s.score).sum() for s in scores], dtype=np.float64)
-    if not scores or sizes.sum() == 0:
-        return {"change": [_change(s, np.ones(len(s.score), bool), None) for s in scores]}
 
-    def draw() -> np.ndarray:
-        counts = ctx.rng.multinomial(p.samples, sizes / sizes.sum())
-        return np.concatenate([s.simulate(ctx.rng, int(n)) for s, n in zip(scores, counts, strict=True) if n])
+    def simulate(rng: np.random.Generator, n: int) -> np.ndarray:
+        if sizes.sum() == 0:
+            return np.zeros(0)
+        counts = rng.multinomial(n, sizes / sizes.sum())
+        return np.concatenate([s.simulate(rng, int(k)) for s, k in zip(scores, counts, strict=True) if k])
 
-    null = draw()
-    tau = float(np.quantile(null, 1.0 - p.false_alarm))
-    achieved = float(np.mean(draw() > tau))
-    ctx.log.info("calibrated tau %.6g over %d datasets for false alarms %.4g: achieved %.4g on an independent "
-                 "simulation", tau, len(scores), p.false_alarm, achieved)
-    ctx.report(calibration=[{"query": [s.query for s in scores], "tau": tau, "false_alarm_target": p.false_alarm,
-                             "false_alarm_achieved": achieved, "samples": int(p.samples)}])
-    return {"change": [_change(s, _above(s.score, tau), tau) for s in scores]}
+    return simulate
 
 
 def _calibrated(ctx: StageContext) -> dict[str, Any]:
     p = ctx.params
-    if p.per == "epoch":
-        return _pooled(ctx, list(ctx["scores"]))
-    out, report = [], []
-    for s in ctx["scores"]:
+    scores = list(ctx["scores"])
+    for s in scores:
         if s.simulate is None:
             raise ValueError(f"measure {s.measure!r} cannot simulate unchanged pairs; use fixed or significance")
-        null = s.simulate(ctx.rng, p.samples)
+    # one τ per dataset from its own pairs, or one for the epoch from pairs drawn across all of them
+    groups = [([s], s.simulate, s.query) for s in scores] if p.per == "dataset" else \
+        [(scores, _pooled(scores), [s.query for s in scores])] if scores else []
+    out, report = [], []
+    for members, simulate, query in groups:
+        null = simulate(ctx.rng, p.samples)
         if null.size == 0:
-            out.append(_change(s, np.ones(len(s.score), bool), None))
+            out += [_change(s, np.ones(len(s.score), bool), None) for s in members]
             continue
         tau = float(np.quantile(null, 1.0 - p.false_alarm))
-        check = s.simulate(ctx.rng, p.samples)
-        achieved = float(np.mean(check > tau))
-        ctx.log.info("calibrated tau %.6g for false alarms %.4g: achieved %.4g on an independent simulation", tau,
-                     p.false_alarm, achieved)
-        report.append({"query": s.query, "tau": tau, "false_alarm_target": p.false_alarm,
+        achieved = float(np.mean(simulate(ctx.rng, p.samples) > tau))
+        ctx.log.info("calibrated tau %.6g for false alarms %.4g (%s): achieved %.4g on an independent simulation",
+                     tau, p.false_alarm, query, achieved)
+        report.append({"query": query, "tau": tau, "false_alarm_target": p.false_alarm,
                        "false_alarm_achieved": achieved, "samples": int(p.samples)})
-        out.append(_change(s, _above(s.score, tau), tau))
+        out += [_change(s, _above(s.score, tau), tau) for s in members]
     ctx.report(calibration=report)
     return {"change": out}
 

@@ -32,7 +32,8 @@ from twin_store import TwinStore
 
 from .geometry import ReferenceIndex
 from .plugins import Registry, load_registry
-from .runner import _identifier, read_dataset, run_workflow
+from .names import identifier
+from .runner import read_dataset, run_workflow
 from .sensors import PRESETS
 from .simulate import distance_to
 from .types import ChangeState, Composite, CompositeItem, Dataset
@@ -205,7 +206,7 @@ def _evaluate_epoch(wf: Any, store: TwinStore, prev_id: str, epoch: Any, registr
             missing.append(str(path))
             continue
         scene_dir = path.parent
-        key = f"{epoch.id}_{inp.name or _identifier(path.stem)}"
+        key = f"{epoch.id}_{inp.name or identifier(path.stem)}"
         t = np.load(tpath)
         es = sets[key]
         if es.n_elements != len(t["changed"]):
@@ -355,8 +356,8 @@ def _removal(et: dict[str, Any], prev_sets: list, sets: dict, points: np.ndarray
     unmatched: list[str] = []
     per_object: dict[str, Any] = {}
     for name in names:
-        key = next((es.key for es in prev_sets if es.key.endswith(f"_{_identifier('cad_' + name)}")
-                    or es.key.endswith(f"_{_identifier(name)}")), None)
+        key = next((es.key for es in prev_sets if es.key.endswith(f"_{identifier('cad_' + name)}")
+                    or es.key.endswith(f"_{identifier(name)}")), None)
         if key is None or key not in sets or sets[key].faces is None or \
                 len(sets[key].faces) != len(et[f"removed__{name}"]):
             unmatched.append(name)
@@ -475,8 +476,8 @@ def _segment_objects(segments: list[dict], et: dict[str, Any], truth: _ScanTruth
     removed_names = [n for n, st in et.get("objects", {}).items() if st == "removed"]
     out["removed_found"] = {}
     for name in removed_names:
-        keys = [es.key for es in prev_sets if es.key.endswith(f"_{_identifier('cad_' + name)}")
-                or es.key.endswith(f"_{_identifier(name)}")]
+        keys = [es.key for es in prev_sets if es.key.endswith(f"_{identifier('cad_' + name)}")
+                or es.key.endswith(f"_{identifier(name)}")]
         hits = [g for g in segments if g["kind"] == "removed" and not g["artefact"] and
                 any(k in g["members"] for k in keys)]
         out["removed_found"][name] = len(hits)

@@ -33,6 +33,7 @@ from twin_store import TwinStore, TwinStoreError, writer_lock
 
 from .errors import GdtError, InputError, StageError
 from .plugins import NullProgress, Progress, ReadRequest, Registry, StageContext, StageSpec, load_registry
+from .names import UNITS, identifier
 from .twin import composite_to_elements
 from .types import (
     Change,
@@ -44,7 +45,7 @@ from .types import (
     Scores,
     SourceInfo,
 )
-from .workflow import UNITS, LoadedWorkflow, iter_chain, load_workflow
+from .workflow import LoadedWorkflow, iter_chain, load_workflow
 
 log = logging.getLogger("gdt.run")
 
@@ -201,7 +202,7 @@ def plan_from_workflow(wf: LoadedWorkflow, registry: Registry) -> RunPlan:
     model = wf.model
     epochs = []
     for e_index, epoch in enumerate(model.epochs):
-        inputs = [InputPlan(path=wf.input_path(inp), name=inp.name or _identifier(Path(inp.path).stem), kind=inp.kind,
+        inputs = [InputPlan(path=wf.input_path(inp), name=inp.name or identifier(Path(inp.path).stem), kind=inp.kind,
                             reader=inp.reader, units=inp.units or model.units, viewpoints=inp.viewpoints)
                   for inp in epoch.inputs]
         stages = [StagePlan(index=s_index, spec=registry.get(entry.uses), params=entry.with_, id=entry.id)
@@ -247,11 +248,6 @@ def _read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: in
         ds, points=ds.points * scale if scale != 1.0 else ds.points, viewpoints=vps,
         source=SourceInfo(path=_rel(inp.path, plan.base_dir), sha256=digest, units=inp.units, scale=scale,
                           reader=ds.source.reader if ds.source else ""))
-
-
-def _identifier(stem: str) -> str:
-    out = "".join(ch if ch.isalnum() or ch == "_" else "_" for ch in stem)
-    return out if out and not out[0].isdigit() else f"_{out}"
 
 
 def _run_stage(spec: StageSpec, ctx: StageContext, where: str) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .errors import GdtError
 from .types import Dataset
-from .workflow import UNITS as UNITS_M
+from .names import UNITS as UNITS_M
 
 
 class SensorProfile(BaseModel):

@@ -19,6 +19,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
 from scipy.spatial.transform import Rotation
 
+from .geometry import distance_to, raycasting_scene  # noqa: F401  (re-exported until the move)
 from .sensors import PRESETS, SensorProfile
 
 
@@ -75,30 +76,6 @@ def _rays(spec: ScannerSpec, eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     a, e = np.meshgrid(az, el, indexing="ij")
     d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1).reshape(-1, 3)
     return np.hstack([np.broadcast_to(eye, d.shape), d])
-
-
-def raycasting_scene(meshes: list):  # -> o3d.t.geometry.RaycastingScene
-    """An Open3D raycasting scene holding the triangles of ``meshes``: objects with vertices and faces, or
-    (vertices, faces) pairs; meshes without faces are skipped."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    for m in meshes:
-        verts, faces = (m.vertices, m.faces) if hasattr(m, "faces") else m
-        if len(faces):
-            scene.add_triangles(o3d.core.Tensor(np.asarray(verts, dtype=np.float32)),
-                                o3d.core.Tensor(np.asarray(faces, dtype=np.uint32)))
-    return scene
-
-
-def distance_to(meshes: list, points: np.ndarray) -> np.ndarray:
-    """Distance of each point to the nearest of ``meshes`` (inf when there are none)."""
-    import open3d as o3d
-
-    if not meshes or not len(points):
-        return np.full(len(points), np.inf)
-    return raycasting_scene(meshes).compute_distance(
-        o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy().astype(np.float64)
 
 
 def simulate_scan(meshes: list, eye: np.ndarray, target: np.ndarray, spec: ScannerSpec, rng: np.random.Generator,

@@ -18,9 +18,9 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator
 
 from .errors import WorkflowError
+from .names import UNITS
 from .plugins import Registry, StageSpec, unknown_name_message
 
-UNITS: dict[str, float] = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "um": 1e-6, "in": 0.0254, "ft": 0.3048}
 Units = Literal["m", "dm", "cm", "mm", "um", "in", "ft"]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Identifier = Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$", max_length=64)]

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gdt_pipeline.simulate import raycasting_scene
+from gdt_pipeline.geometry import raycasting_scene
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
 from scipy.spatial import ConvexHull, cKDTree
 
 from gdt_pipeline import Composite, Dataset, RegionOfView, StageContext, StageSpec, hookimpl
-from gdt_pipeline.simulate import raycasting_scene
+from gdt_pipeline.geometry import raycasting_scene
 
 
 class OcclusionParams(BaseModel):

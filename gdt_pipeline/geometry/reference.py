@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .types import Composite
+from ..types import Composite
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,29 @@
+"""Open3D ray-casting scenes and point-to-mesh distances: the point↔mesh work of stages, simulator and evaluation."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def raycasting_scene(meshes: list):  # -> o3d.t.geometry.RaycastingScene
+    """An Open3D raycasting scene holding the triangles of ``meshes``: objects with vertices and faces, or
+    (vertices, faces) pairs; meshes without faces are skipped."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    for m in meshes:
+        verts, faces = (m.vertices, m.faces) if hasattr(m, "faces") else m
+        if len(faces):
+            scene.add_triangles(o3d.core.Tensor(np.asarray(verts, dtype=np.float32)),
+                                o3d.core.Tensor(np.asarray(faces, dtype=np.uint32)))
+    return scene
+
+
+def distance_to(meshes: list, points: np.ndarray) -> np.ndarray:
+    """Distance of each point to the nearest of ``meshes`` (inf when there are none)."""
+    import open3d as o3d
+
+    if not meshes or not len(points):
+        return np.full(len(points), np.inf)
+    return raycasting_scene(meshes).compute_distance(
+        o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy().astype(np.float64)

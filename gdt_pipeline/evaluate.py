@@ -31,8 +31,8 @@ import numpy as np
 from twin_store import TwinStore
 
 from .geometry import ReferenceIndex
-from .plugins import Registry, load_registry
 from .names import identifier
+from .plugins import Registry, load_registry
 from .runner import read_dataset, run_workflow
 from .sensors import PRESETS
 from .simulate import distance_to

@@ -32,8 +32,8 @@ import numpy as np
 from twin_store import TwinStore, TwinStoreError, writer_lock
 
 from .errors import GdtError, InputError, StageError
-from .plugins import NullProgress, Progress, ReadRequest, Registry, StageContext, StageSpec, load_registry
 from .names import UNITS, identifier
+from .plugins import NullProgress, Progress, ReadRequest, Registry, StageContext, StageSpec, load_registry
 from .twin import composite_to_elements
 from .types import (
     Change,

@@ -21,8 +21,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .errors import GdtError
-from .types import Dataset
 from .names import UNITS as UNITS_M
+from .types import Dataset
 
 
 class SensorProfile(BaseModel):

@@ -18,7 +18,6 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator
 
 from .errors import WorkflowError
-from .names import UNITS
 from .plugins import Registry, StageSpec, unknown_name_message
 
 Units = Literal["m", "dm", "cm", "mm", "um", "in", "ft"]

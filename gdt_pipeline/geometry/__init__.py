@@ -1,9 +1,13 @@
 """Geometry helpers shared by stages (and by the simulator and evaluation): ray-casting scenes, point-to-mesh
-distance, surface sampling, orthonormal frames and the nearest-element index of a composite."""
+distance, surface sampling, normals, orthonormal frames, closed-form 3x3 algebra and the nearest-element index of a
+composite."""
 
 from .frames import beam_frames
+from .linalg import det3, quad_inv3, sym3
+from .normals import estimate_normals
 from .raycasting import distance_to, raycasting_scene
 from .reference import NearestResult, ReferenceIndex
 from .sampling import sample_surface
 
-__all__ = ["NearestResult", "ReferenceIndex", "beam_frames", "distance_to", "raycasting_scene", "sample_surface"]
+__all__ = ["NearestResult", "ReferenceIndex", "beam_frames", "det3", "distance_to", "estimate_normals",
+           "quad_inv3", "raycasting_scene", "sample_surface", "sym3"]

@@ -18,8 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gdt_pipeline import Composite, Correspondences, Dataset, MixtureUncertainty
-
-from ..distance.measures import quad_inv3
+from gdt_pipeline.geometry import quad_inv3
 
 
 @dataclass(frozen=True)

@@ -33,8 +33,9 @@ from gdt_pipeline import (
     StageSpec,
     hookimpl,
 )
+from gdt_pipeline.geometry import estimate_normals, quad_inv3
 
-from .measures import bd_gauss_gauss, bhattacharyya, quad_inv3
+from .measures import bd_gauss_gauss, bhattacharyya
 
 bhattacharyya_gaussian = bd_gauss_gauss  # the closed form, kept under its descriptive name
 
@@ -243,8 +244,6 @@ class WelchParams(BaseModel):
 
 
 def _welch(ctx: StageContext) -> dict[str, Any]:
-    from stages.uncertainty.estimators import estimate_normals
-
     recent, reference = ctx["recent"], ctx["reference"]
 
     def with_normals(groups: list[PairGroup], query: int) -> list[PairGroup]:

@@ -24,30 +24,10 @@ import numpy as np
 from scipy.special import ndtr
 
 from gdt_pipeline import BoxUncertainty, GaussianUncertainty, MixtureUncertainty
+from gdt_pipeline.geometry import det3, quad_inv3, sym3
 
 K_SQRT = (8.0 * np.pi) ** 0.75
 _CHUNK = 20_000
-
-
-def _sym(c: np.ndarray) -> tuple[np.ndarray, ...]:
-    return c[:, 0, 0], c[:, 0, 1], c[:, 0, 2], c[:, 1, 1], c[:, 1, 2], c[:, 2, 2]
-
-
-def det3(c: np.ndarray) -> np.ndarray:
-    """Determinants of symmetric 3x3 matrices ``(N,3,3)``."""
-    a, b, cc, d, e, f = _sym(c)
-    return a * (d * f - e * e) - b * (b * f - cc * e) + cc * (b * e - cc * d)
-
-
-def quad_inv3(c: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """xᵀ C⁻¹ x for symmetric 3x3 ``C`` via the adjugate (N pairs at once)."""
-    a, b, cc, d, e, f = _sym(c)
-    A, B, C = d * f - e * e, cc * e - b * f, b * e - cc * d
-    D, E, F = a * f - cc * cc, b * cc - a * e, a * d - b * b
-    det = a * A + b * B + cc * C
-    x0, x1, x2 = x[:, 0], x[:, 1], x[:, 2]
-    num = A * x0 * x0 + D * x1 * x1 + F * x2 * x2 + 2 * (B * x0 * x1 + C * x0 * x2 + E * x1 * x2)
-    return num / det
 
 
 def bd_gauss_gauss(mu1: np.ndarray, c1: np.ndarray, mu2: np.ndarray, c2: np.ndarray) -> np.ndarray:
@@ -213,7 +193,7 @@ def _bc_importance(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, rng
 
 def _inv3(c: np.ndarray) -> np.ndarray:
     """Inverses of symmetric 3x3 matrices via the adjugate (no per-matrix LAPACK call)."""
-    a, b, cc, d, e, f = _sym(c)
+    a, b, cc, d, e, f = sym3(c)
     A, B, C = d * f - e * e, cc * e - b * f, b * e - cc * d
     D, E, F = a * f - cc * cc, b * cc - a * e, a * d - b * b
     det = a * A + b * B + cc * C

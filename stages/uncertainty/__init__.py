@@ -26,9 +26,10 @@ from gdt_pipeline import (
     StageSpec,
     hookimpl,
 )
+from gdt_pipeline.geometry import estimate_normals
 from gdt_pipeline.sensors import PRESETS, load_profile
 
-from .estimators import beam_covariances, estimate_normals, propagate_registration, voxel_mle
+from .estimators import beam_covariances, propagate_registration, voxel_mle
 
 Vec3 = list[float]
 Mat3 = list[list[float]]

@@ -17,16 +17,6 @@ def beam_covariances(points: np.ndarray, origin: np.ndarray, sigma_range: np.nda
     return sr2 * outer + sl2 * (np.eye(3)[None] - outer)
 
 
-def estimate_normals(points: np.ndarray, neighbours: int) -> np.ndarray:
-    """Unit normals of a point cloud from its k nearest neighbours (Open3D's PCA normals)."""
-    import open3d as o3d
-
-    origin = points.mean(axis=0)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points - origin))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=neighbours))
-    return np.asarray(pcd.normals)
-
-
 def voxel_mle(points: np.ndarray, voxel: float, overlap_steps: int, min_points: int, min_sigma: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Maximum-likelihood Gaussians on an overlapping voxel grid: means ``(M,3)``, covariances ``(M,3,3)``, counts.

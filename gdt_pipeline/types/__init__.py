@@ -1,0 +1,28 @@
+"""The data that flows between stages: plain, frozen, numpy-backed dataclasses.
+
+Every per-element quantity is an array over elements (points of a point set, facets of a mesh), never a Python
+object per element. Arrays handed to these classes are made read-only so that a stage cannot change what another
+stage (or the twin) still holds; a stage builds new objects with :func:`dataclasses.replace` instead.
+
+Element convention: for a point set an element is a point; for a triangle mesh an element is a facet, and a facet
+is treated as infinitely many points that share the facet's uncertainty (paper Sec. 4.2.2).
+"""
+
+from .arrays import broadcast_rows, frozen_array
+from .composite import Composite, CompositeItem, EpochInfo, Segment
+from .data import Change, Correspondences, Dataset, RegionOfView, Registration, Scores, SourceInfo
+from .states import ChangeState, FusionReason, Kind, Role
+from .uncertainty import (
+    BOX_99,
+    CHI2_3_99,
+    BoxUncertainty,
+    GaussianUncertainty,
+    MixtureUncertainty,
+    Region99,
+    Uncertainty,
+)
+
+__all__ = ["BOX_99", "CHI2_3_99", "BoxUncertainty", "Change", "ChangeState", "Composite", "CompositeItem",
+           "Correspondences", "Dataset", "EpochInfo", "FusionReason", "GaussianUncertainty", "Kind",
+           "MixtureUncertainty", "Region99", "RegionOfView", "Registration", "Role", "Scores", "Segment", "SourceInfo",
+           "Uncertainty", "broadcast_rows", "frozen_array"]

@@ -1,0 +1,24 @@
+"""Read-only, shape-checked numpy arrays: what every record below holds."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def frozen_array(a: np.ndarray | list | tuple, dtype: type | np.dtype, ndim_shape: tuple[int | None, ...],
+                 what: str) -> np.ndarray:
+    """Return a read-only C-contiguous copy of ``a`` with the given dtype, checking its shape (None = any)."""
+    arr = np.ascontiguousarray(np.asarray(a, dtype=dtype))
+    if arr.ndim != len(ndim_shape) or any(s is not None and s != d for s, d in zip(ndim_shape, arr.shape, strict=True)):
+        want = "(" + ", ".join("N" if s is None else str(s) for s in ndim_shape) + ")"
+        raise ValueError(f"{what}: expected shape {want}, got {arr.shape}")
+    if arr is a or arr.base is not None:
+        arr = arr.copy()
+    arr.setflags(write=False)
+    return arr
+
+
+def broadcast_rows(arr: np.ndarray, n: int, what: str) -> None:
+    """Check that a per-element array has one row, to broadcast, or one row per element."""
+    if arr.shape[0] not in (1, n):
+        raise ValueError(f"{what}: {arr.shape[0]} rows for {n} elements (give 1 to broadcast, or one per element)")

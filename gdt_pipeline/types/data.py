@@ -1,0 +1,279 @@
+"""Datasets and what stages make of them: region of view, correspondences, scores, change, registration."""
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .arrays import frozen_array
+from .states import Kind, Role
+from .uncertainty import BoxUncertainty, GaussianUncertainty, MixtureUncertainty, Uncertainty
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    """Where a dataset came from: file, its sha256, the units it was written in and the scale applied on reading."""
+
+    path: str
+    sha256: str
+    units: str = "m"
+    scale: float = 1.0
+    reader: str = ""
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """One geometry of one epoch: a point set ``points (N,3)`` or a triangle mesh ``points (V,3)`` + ``faces (F,3)``."""
+
+    name: str
+    role: Role
+    points: np.ndarray
+    faces: np.ndarray | None = None
+    source: SourceInfo | None = None
+    uncertainty: Uncertainty | None = None
+    viewpoints: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        pts = frozen_array(self.points, np.float64, (None, 3), f"dataset {self.name!r} points")
+        object.__setattr__(self, "points", pts)
+        if self.faces is not None:
+            faces = frozen_array(self.faces, np.int64, (None, 3), f"dataset {self.name!r} faces")
+            if faces.size and (faces.min() < 0 or faces.max() >= len(pts)):
+                raise ValueError(f"dataset {self.name!r}: face indices outside 0..{len(pts) - 1}")
+            object.__setattr__(self, "faces", faces)
+        if self.viewpoints is not None:
+            vps = frozen_array(self.viewpoints, np.float64, (None, 3), f"dataset {self.name!r} viewpoints")
+            object.__setattr__(self, "viewpoints", vps)
+
+    @property
+    def kind(self) -> Kind:
+        """"mesh" when the dataset has faces, else "points"."""
+        return "mesh" if self.faces is not None else "points"
+
+    @property
+    def n_elements(self) -> int:
+        """Number of elements: facets of a mesh, points of a point set."""
+        return len(self.faces) if self.faces is not None else len(self.points)
+
+    def element_positions(self) -> np.ndarray:
+        """One position per element: the point itself, or the facet's centroid."""
+        if self.faces is None:
+            return self.points
+        return self.points[self.faces].mean(axis=1)
+
+    def facet_normals(self, idx: np.ndarray | None = None, unit: bool = False) -> np.ndarray:
+        """Normals of the facets (all, or those at ``idx``) by the right-hand rule: twice the facet's area long, or
+        of unit length with ``unit``."""
+        if self.faces is None:
+            raise ValueError(f"dataset {self.name!r} is a point set: it has no facets")
+        tri = self.points[self.faces if idx is None else self.faces[idx]]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        if unit:
+            normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        return normal
+
+    def element_covariance(self) -> np.ndarray:
+        """Per-element covariance ``(E,3,3)`` of the attached uncertainty (second moments of a box)."""
+        if self.uncertainty is None:
+            raise ValueError(f"dataset {self.name!r} has no uncertainty attached (add an uncertainty stage)")
+        return self.uncertainty.covariance(self.n_elements)
+
+    def with_uncertainty(self, uncertainty: Uncertainty) -> Dataset:
+        """A copy with ``uncertainty`` attached, checked against the element count."""
+        uncertainty.covariance(self.n_elements)  # raises on a row-count mismatch
+        return dataclasses.replace(self, uncertainty=uncertainty)
+
+    def transformed(self, transform: np.ndarray) -> Dataset:
+        """A copy moved by a 4x4 rigid transform; covariances and box axes are rotated with it."""
+        t = np.asarray(transform, dtype=np.float64)
+        rot, trans = t[:3, :3], t[:3, 3]
+        unc = self.uncertainty
+        if isinstance(unc, GaussianUncertainty):
+            unc = GaussianUncertainty(rot[None] @ unc.cov @ rot.T[None])
+        elif isinstance(unc, BoxUncertainty):
+            base = np.eye(3)[None] if unc.rotation is None else unc.rotation
+            unc = BoxUncertainty(unc.half_widths, rot[None] @ base)
+        elif isinstance(unc, MixtureUncertainty):
+            unc = MixtureUncertainty(unc.weights, unc.means @ rot.T, rot @ unc.covs @ rot.T)
+        vps = None if self.viewpoints is None else self.viewpoints @ rot.T + trans
+        return dataclasses.replace(self, points=self.points @ rot.T + trans, uncertainty=unc, viewpoints=vps)
+
+
+@dataclass(frozen=True)
+class RegionOfView:
+    """The space the sensors of an epoch measured: closed triangle surfaces (their union; ``parts`` gives the facet
+    count of each closed part, default one part) with a vectorised ``contains``; and, once a region-of-view stage
+    has looked at the reference, per reference item which elements were in view (inside and not occluded) and which
+    of those the recent data matched."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    parts: tuple[int, ...] = ()
+    in_view: dict[str, np.ndarray] = field(default_factory=dict)
+    matched: dict[str, np.ndarray] = field(default_factory=dict)
+    method: str = ""
+
+    def __post_init__(self) -> None:
+        verts = frozen_array(self.vertices, np.float64, (None, 3), "region of view vertices")
+        object.__setattr__(self, "vertices", verts)
+        object.__setattr__(self, "faces", frozen_array(self.faces, np.int64, (None, 3), "region of view faces"))
+        parts = tuple(int(p) for p in self.parts) or (len(self.faces),)
+        if sum(parts) != len(self.faces):
+            raise ValueError(f"region of view: parts {parts} do not add up to its {len(self.faces)} facets")
+        object.__setattr__(self, "parts", parts)
+
+    @classmethod
+    def box(cls, lower: np.ndarray | list[float], upper: np.ndarray | list[float]) -> RegionOfView:
+        """An axis-aligned box region from its two corners."""
+        import trimesh
+
+        lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+        if np.any(hi <= lo):
+            raise ValueError(f"region of view box: upper {hi.tolist()} must exceed lower {lo.tolist()}")
+        mesh = trimesh.creation.box(extents=hi - lo)
+        mesh.apply_translation((hi + lo) / 2)
+        return cls(mesh.vertices, mesh.faces)
+
+    def contains(self, points: np.ndarray, part: int | None = None) -> np.ndarray:
+        """Boolean mask of the points strictly inside any of the closed parts, or inside part ``part`` only (parity
+        of ray intersections each)."""
+        import open3d as o3d  # imported here: open3d is heavy and only a region-of-view query needs it
+
+        pts = o3d.core.Tensor(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        inside = np.zeros(pts.shape[0], dtype=bool)
+        start = 0
+        # one scene per part: overlapping closed parts would cancel each other's parity
+        for k, n in enumerate(self.parts):
+            if part is not None and k != part:
+                start += n
+                continue
+            scene = o3d.t.geometry.RaycastingScene()
+            faces = self.faces[start:start + n]
+            used, local = np.unique(faces, return_inverse=True)
+            scene.add_triangles(o3d.core.Tensor(self.vertices[used].astype(np.float32)),
+                                o3d.core.Tensor(local.reshape(-1, 3).astype(np.uint32)))
+            inside |= scene.compute_occupancy(pts).numpy().astype(bool)
+            start += n
+        return inside
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """Candidate matches of the elements of one recent dataset in the reference.
+
+    Each of the M candidates belongs to query element ``element[m]`` (default: candidate m is element m), compares
+    the query at ``query_position[m]`` (default: the element's position; facet samples use their own) with the
+    reference at ``position[m]`` whose uncertainty is that of reference element ``ref_element[m]`` of item
+    ``ref_item[m]``, or row ``ref_row[m]`` of ``ref_uncertainty`` where that is ≥ 0 (a mixture of neighbours;
+    default: row m for every candidate when ``ref_uncertainty`` is given). ``ref_item`` −1: no
+    correspondence inside the search space. Distance stages score every candidate and keep, per element, the
+    lowest score (the paper: "the candidate with the lower change score wins").
+    """
+
+    query: int
+    ref_item: np.ndarray
+    ref_element: np.ndarray
+    position: np.ndarray
+    distance: np.ndarray
+    method: str = ""
+    element: np.ndarray | None = None
+    query_position: np.ndarray | None = None
+    ref_uncertainty: Uncertainty | None = None
+    n_elements: int | None = None
+    ref_row: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "ref_item", frozen_array(self.ref_item, np.int64, (None,), "ref_item"))
+        m = len(self.ref_item)
+        if self.ref_uncertainty is not None:
+            rows = np.arange(m) if self.ref_row is None else self.ref_row
+            object.__setattr__(self, "ref_row", frozen_array(rows, np.int64, (m,), "ref_row"))
+        object.__setattr__(self, "ref_element", frozen_array(self.ref_element, np.int64, (m,), "ref_element"))
+        object.__setattr__(self, "position", frozen_array(self.position, np.float64, (m, 3), "matched position"))
+        object.__setattr__(self, "distance", frozen_array(self.distance, np.float64, (m,), "distance"))
+        if self.element is None:
+            object.__setattr__(self, "element", np.arange(m, dtype=np.int64))
+            object.__setattr__(self, "n_elements", m if self.n_elements is None else self.n_elements)
+        else:
+            object.__setattr__(self, "element", frozen_array(self.element, np.int64, (m,), "candidate element"))
+            if self.n_elements is None:
+                raise ValueError("correspondences with an element map need n_elements")
+        if self.query_position is not None:
+            object.__setattr__(self, "query_position",
+                               frozen_array(self.query_position, np.float64, (m, 3), "query position"))
+
+    @property
+    def found(self) -> np.ndarray:
+        """Mask of the candidates that are a correspondence."""
+        return self.ref_item >= 0
+
+    def element_found(self) -> np.ndarray:
+        """Mask of the query elements with at least one correspondence."""
+        out = np.zeros(self.n_elements, dtype=bool)
+        out[self.element[self.found]] = True
+        return out
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Dissimilarity per element of one recent dataset (NaN where there was no correspondence)."""
+
+    query: int
+    score: np.ndarray
+    measure: str
+    p_value: np.ndarray | None = None
+    tolerance: float | None = None  # ε_T of a numerical integration, when the measure used one
+    match: np.ndarray | None = None  # per element, the index of the winning correspondence candidate (-1: none)
+    # simulate(rng, n): scores of n unchanged pairs drawn from this dataset's actual pairs' uncertainty models (the
+    # null distribution a calibrated threshold needs); None when the measure cannot simulate.
+    simulate: Callable[[np.random.Generator, int], np.ndarray] | None = field(default=None, compare=False,
+                                                                               repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "score", frozen_array(self.score, np.float64, (None,), "score"))
+        if self.p_value is not None:
+            object.__setattr__(self, "p_value", frozen_array(self.p_value, np.float64, (len(self.score),), "p-value"))
+
+
+@dataclass(frozen=True)
+class Change:
+    """Per element of one recent dataset: the score, the change mask and the change state."""
+
+    query: int
+    score: np.ndarray
+    mask: np.ndarray
+    state: np.ndarray
+    p_value: np.ndarray | None = None
+    threshold: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "score", frozen_array(self.score, np.float64, (None,), "change score"))
+        n = len(self.score)
+        object.__setattr__(self, "mask", frozen_array(self.mask, np.bool_, (n,), "change mask"))
+        object.__setattr__(self, "state", frozen_array(self.state, np.uint8, (n,), "change state"))
+        if self.p_value is not None:
+            object.__setattr__(self, "p_value", frozen_array(self.p_value, np.float64, (n,), "change p-value"))
+
+
+@dataclass(frozen=True)
+class Registration:
+    """A rigid transform from the recent data to the twin, with its quality and 6x6 covariance when known.
+
+    The covariance is over small rotations ω about ``center`` and translations: a point x moves by ω × (x − center)
+    + t. Expressing it about a centre near the data keeps georeferenced coordinates well conditioned.
+    """
+
+    transform: np.ndarray
+    fitness: float = 1.0
+    rmse: float = 0.0
+    covariance: np.ndarray | None = None  # 6x6 over (ωx, ωy, ωz, tx, ty, tz), rotation about ``center``
+    method: str = ""
+    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "transform", frozen_array(self.transform, np.float64, (4, 4), "transform"))
+        object.__setattr__(self, "center", frozen_array(self.center, np.float64, (3,), "covariance center"))
+        if self.covariance is not None:
+            object.__setattr__(self, "covariance", frozen_array(self.covariance, np.float64, (6, 6), "covariance"))

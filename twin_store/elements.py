@@ -1,0 +1,288 @@
+"""An element set (one dataset of the twin) and how it is written to, overridden in, and read from a USD prim.
+
+Points are stored as float32 relative to an ``xformOp:translate`` (double) at the set's centre, so georeferenced
+coordinates (UTM metres) keep their precision. Per-element values are primvars in the ``gdt:`` namespace with
+interpolation ``vertex`` (points) or ``uniform`` (facets), restated in every layer that writes them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
+
+from . import names
+from .errors import TwinStoreError
+from .names import STATE_COLORS, TWIN_PRIM
+
+# name -> (value type, interpolation, array, element size, documentation)
+Primvars = dict[str, tuple[Any, Any, np.ndarray, int, str | None]]
+
+
+@dataclass(frozen=True)
+class ElementSet:
+    """One dataset of the twin: geometry plus per-element uncertainty, change and history values.
+
+    An element is a facet for meshes and a point for point sets.
+    """
+
+    key: str
+    kind: str
+    points: np.ndarray
+    faces: np.ndarray | None
+    uncertainty_model: str
+    covariance: np.ndarray | None
+    half_widths: np.ndarray | None
+    rotation: np.ndarray | None
+    uncertainty_summary: np.ndarray
+    state: np.ndarray
+    score: np.ndarray
+    source_epoch: np.ndarray
+    visible: np.ndarray
+    ids: np.ndarray | None = None
+    display_color: np.ndarray | None = None  # (E,3) in 0..1; default: baked from the change state
+    p_value: np.ndarray | None = None  # (E,) p-value of the change test, where the measure has one
+    reason: np.ndarray | None = None  # (E,) uint8 fusion reason code (REASON_NAMES)
+    reason_ratio: np.ndarray | None = None  # (E,) the numbers behind the reason: √det Σ new / known, NaN if none
+
+    def __post_init__(self) -> None:
+        if not Tf.IsValidIdentifier(self.key):
+            raise TwinStoreError(f"element set key {self.key!r} is not a valid USD identifier")
+        if self.kind not in ("mesh", "points"):
+            raise TwinStoreError(f"{self.key}: kind must be 'mesh' or 'points', not {self.kind!r}")
+        if self.uncertainty_model not in ("gaussian", "box", "mixture", "none"):
+            raise TwinStoreError(f"{self.key}: unknown uncertainty model {self.uncertainty_model!r}")
+        pts = np.asarray(self.points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise TwinStoreError(f"{self.key}: points must be (V,3), got {pts.shape}")
+        if self.kind == "mesh":
+            if self.faces is None or np.asarray(self.faces).ndim != 2 or np.asarray(self.faces).shape[1] != 3:
+                raise TwinStoreError(f"{self.key}: a mesh needs faces of shape (F,3)")
+            n = len(self.faces)
+        else:
+            if self.faces is not None:
+                raise TwinStoreError(f"{self.key}: a point set has no faces")
+            n = len(pts)
+        shapes = {"uncertainty_summary": (n,), "state": (n,), "score": (n,), "source_epoch": (n,), "visible": (n,),
+                  "covariance": (n, 6), "half_widths": (n, 3), "rotation": (n, 3, 3), "ids": (n,),
+                  "display_color": (n, 3), "p_value": (n,), "reason": (n,), "reason_ratio": (n,)}
+        for name, shape in shapes.items():
+            value = getattr(self, name)
+            if value is not None and np.shape(value) != shape:
+                raise TwinStoreError(f"{self.key}: {name} must have shape {shape}, got {np.shape(value)}")
+        if self.uncertainty_model in ("gaussian", "mixture") and self.covariance is None:
+            raise TwinStoreError(f"{self.key}: a {self.uncertainty_model} uncertainty needs covariance")
+        if self.uncertainty_model == "box" and self.half_widths is None:
+            raise TwinStoreError(f"{self.key}: a box uncertainty needs half_widths")
+
+    @property
+    def n_elements(self) -> int:
+        """Number of elements (facets of a mesh, points of a point set)."""
+        return len(self.faces) if self.faces is not None else len(self.points)
+
+
+def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit normal per triangle (zero for degenerate ones)."""
+    tri = points[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+
+
+def primvar_values(es: ElementSet) -> Primvars:
+    """Per-element primvars of a set: name -> (value type, interpolation, array, element size, documentation)."""
+    types = Sdf.ValueTypeNames
+    interp = UsdGeom.Tokens.uniform if es.kind == "mesh" else UsdGeom.Tokens.vertex
+    state = np.asarray(es.state, dtype=np.uint8)
+    colour = (STATE_COLORS[np.minimum(state, len(STATE_COLORS) - 1)] if es.display_color is None
+              else np.asarray(es.display_color, dtype=np.float32))
+    out: Primvars = {
+        "gdt:uncertainty": (types.FloatArray, interp, np.asarray(es.uncertainty_summary, dtype=np.float32), 1,
+                            names.DOC_UNCERTAINTY),
+        "gdt:changeScore": (types.FloatArray, interp, np.asarray(es.score, dtype=np.float32), 1, names.DOC_SCORE),
+        "gdt:changeState": (types.UCharArray, interp, state, 1, names.DOC_STATE),
+        "gdt:sourceEpoch": (types.IntArray, interp, np.asarray(es.source_epoch, dtype=np.int32), 1,
+                            names.DOC_SOURCE_EPOCH),
+        "gdt:visible": (types.BoolArray, interp, np.asarray(es.visible, dtype=bool), 1, names.DOC_VISIBLE),
+        "displayColor": (types.Color3fArray, interp, colour, 1, None),
+    }
+    # the optional values, in the order they are authored
+    if es.covariance is not None:
+        out["gdt:covariance"] = (types.FloatArray, interp, np.asarray(es.covariance, dtype=np.float32).reshape(-1),
+                                 6, names.DOC_COVARIANCE)
+    if es.half_widths is not None:
+        out["gdt:halfWidths"] = (types.Float3Array, interp, np.asarray(es.half_widths, np.float32), 1,
+                                 names.DOC_HALF_WIDTHS)
+    if es.p_value is not None:
+        out["gdt:pValue"] = (types.FloatArray, interp, np.asarray(es.p_value, dtype=np.float32), 1, names.DOC_P_VALUE)
+    if es.reason is not None:
+        out["gdt:fusionReason"] = (types.UCharArray, interp, np.asarray(es.reason, dtype=np.uint8), 1,
+                                   names.DOC_REASON)
+    if es.reason_ratio is not None:
+        out["gdt:fusionRatio"] = (types.FloatArray, interp, np.asarray(es.reason_ratio, dtype=np.float32), 1,
+                                  names.DOC_RATIO)
+    if es.rotation is not None:
+        out["gdt:rotation"] = (types.FloatArray, interp, np.asarray(es.rotation, dtype=np.float32).reshape(-1), 9,
+                               names.DOC_ROTATION)
+    return out
+
+
+def point_widths(points: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Per-point widths: 1/500 of the set's diagonal, and 0 for hidden points, so that plain viewers hide them."""
+    diag = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
+    return np.where(np.asarray(visible, dtype=bool), diag / 500.0 if diag > 0 else 0.002, 0.0).astype(np.float32)
+
+
+def vt_array(type_name: Any, arr: np.ndarray) -> Any:
+    """A numpy array as the Vt array of a USD value type."""
+    if type_name == Sdf.ValueTypeNames.BoolArray:
+        return Vt.BoolArray([bool(v) for v in arr]) if arr.size < 64 else Vt.BoolArray.FromNumpy(arr)
+    return type_name.type.pythonClass.FromNumpy(np.ascontiguousarray(arr))
+
+
+def same_values(old: Any, new: np.ndarray) -> bool:
+    """Whether a stored value already equals ``new`` (NaNs equal), so a later layer need not restate it."""
+    if old is None:
+        return False
+    a = np.asarray(old)
+    if a.shape != new.shape and a.size == new.size:
+        a = a.reshape(new.shape)
+    return a.shape == new.shape and bool(np.array_equal(a, new, equal_nan=a.dtype.kind == "f"))
+
+
+def define_element_set(stage: Usd.Stage, es: ElementSet) -> None:
+    """Author a new set as ``/Twin/<key>`` on the stage's edit target: geometry, translate, primvars."""
+    path = f"{TWIN_PRIM}/{es.key}"
+    pts = np.asarray(es.points, dtype=np.float64)
+    origin = (pts.min(axis=0) + pts.max(axis=0)) / 2 if len(pts) else np.zeros(3)
+    local = (pts - origin).astype(np.float32)
+    if es.kind == "mesh":
+        geom = UsdGeom.Mesh.Define(stage, path)
+        faces = np.asarray(es.faces, dtype=np.int32)
+        geom.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, dtype=np.int32)))
+        geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1)))
+        geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        geom.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(face_normals(local, faces).astype(np.float32)))
+        geom.SetNormalsInterpolation(UsdGeom.Tokens.uniform)
+        geom.CreateHoleIndicesAttr(Vt.IntArray.FromNumpy(np.flatnonzero(~np.asarray(es.visible)).astype(np.int32)))
+    else:
+        geom = UsdGeom.Points.Define(stage, path)
+        ids = np.arange(len(pts), dtype=np.int64) if es.ids is None else np.asarray(es.ids, dtype=np.int64)
+        geom.CreateIdsAttr(Vt.Int64Array.FromNumpy(ids))
+        geom.CreateWidthsAttr(Vt.FloatArray.FromNumpy(point_widths(pts, es.visible)))
+        geom.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+    geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(local))
+    geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, local.min(axis=0))),
+                                         Gf.Vec3f(*map(float, local.max(axis=0)))]))
+    geom.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*map(float, origin)))
+    if not np.any(es.visible):
+        geom.MakeInvisible()
+    api = UsdGeom.PrimvarsAPI(geom.GetPrim())
+    model = api.CreatePrimvar("gdt:uncertaintyModel", Sdf.ValueTypeNames.Token, UsdGeom.Tokens.constant)
+    model.Set(es.uncertainty_model)
+    for name, (tname, interp, arr, size, doc) in primvar_values(es).items():
+        pv = api.CreatePrimvar(name, tname, interp, size)
+        pv.Set(vt_array(tname, arr))
+        if doc:
+            pv.GetAttr().SetDocumentation(doc)
+
+
+def override_element_set(prim: Usd.Prim, es: ElementSet, epoch_id: str) -> None:
+    """Author, on the stage's edit target, the per-element values of a known set that differ from what is stored.
+
+    The geometry of a known set never changes (changed geometry comes in as a new set)."""
+    kind = _check_same_geometry(prim, es, epoch_id)
+    _restate_primvars(UsdGeom.PrimvarsAPI(prim), es)
+    _restate_visibility(prim, kind, es)
+
+
+def _check_same_geometry(prim: Usd.Prim, es: ElementSet, epoch_id: str) -> str:
+    """The stored set's kind, after checking its points (and faces) are those of ``es``."""
+    geom = UsdGeom.PointBased(prim)
+    kind = "mesh" if prim.IsA(UsdGeom.Mesh) else "points"
+    old_local = np.asarray(geom.GetPointsAttr().Get(), dtype=np.float32)
+    ops = UsdGeom.Xformable(prim).GetOrderedXformOps()
+    origin = np.asarray(ops[0].Get(), dtype=np.float64) if ops else np.zeros(3)
+    new_local = (np.asarray(es.points, dtype=np.float64) - origin).astype(np.float32)
+    same = kind == es.kind and old_local.shape == new_local.shape and np.array_equal(old_local, new_local)
+    if same and kind == "mesh":
+        old_faces = np.asarray(UsdGeom.Mesh(prim).GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+        same = np.array_equal(old_faces, np.asarray(es.faces))
+    if not same:
+        raise TwinStoreError(f"epoch {epoch_id}: geometry of an existing element set cannot change: {es.key} "
+                             f"(changed geometry comes in as a new set)")
+    return kind
+
+
+def _restate_primvars(api: UsdGeom.PrimvarsAPI, es: ElementSet) -> None:
+    """Author the uncertainty model and every primvar whose value differs from the composed one."""
+    old_model = api.GetPrimvar("gdt:uncertaintyModel").Get()
+    if old_model != es.uncertainty_model:
+        api.CreatePrimvar("gdt:uncertaintyModel", Sdf.ValueTypeNames.Token,
+                          UsdGeom.Tokens.constant).Set(es.uncertainty_model)
+    for name, (tname, interp, arr, size, doc) in primvar_values(es).items():
+        old = api.GetPrimvar(name)
+        if old and same_values(old.Get(), arr):
+            continue
+        pv = api.CreatePrimvar(name, tname, interp, size)  # restates type and interpolation in this layer
+        pv.SetInterpolation(interp)
+        if size != 1:
+            pv.SetElementSize(size)
+        pv.Set(vt_array(tname, arr))
+        if doc:
+            pv.GetAttr().SetDocumentation(doc)
+
+
+def _restate_visibility(prim: Usd.Prim, kind: str, es: ElementSet) -> None:
+    """Author what plain viewers use to hide elements (mesh holes, zero point widths) and the set's visibility."""
+    if kind == "mesh":
+        holes = np.flatnonzero(~np.asarray(es.visible)).astype(np.int32)
+        mesh = UsdGeom.Mesh(prim)
+        if not same_values(mesh.GetHoleIndicesAttr().Get(), holes):
+            mesh.CreateHoleIndicesAttr().Set(Vt.IntArray.FromNumpy(holes))
+    else:
+        points = UsdGeom.Points(prim)
+        widths = point_widths(np.asarray(es.points, dtype=np.float64), es.visible)
+        if not same_values(points.GetWidthsAttr().Get(), widths):
+            points.CreateWidthsAttr().Set(Vt.FloatArray.FromNumpy(widths))
+            points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+    imageable = UsdGeom.Imageable(prim)
+    hidden_now = imageable.GetVisibilityAttr().Get() == UsdGeom.Tokens.invisible
+    if hidden_now and np.any(es.visible):
+        imageable.MakeVisible()
+    elif not hidden_now and not np.any(es.visible):
+        imageable.MakeInvisible()
+
+
+def read_element_set(prim: Usd.Prim) -> ElementSet:
+    """The element set a composed ``/Twin/<key>`` prim holds, in world coordinates."""
+    geom = UsdGeom.PointBased(prim)
+    ops = UsdGeom.Xformable(prim).GetOrderedXformOps()
+    origin = np.asarray(ops[0].Get(), dtype=np.float64) if ops else np.zeros(3)
+    pts = np.asarray(geom.GetPointsAttr().Get(), dtype=np.float64) + origin
+    api = UsdGeom.PrimvarsAPI(prim)
+
+    def pv(name: str, dtype: Any, shape: tuple | None = None) -> np.ndarray | None:
+        p = api.GetPrimvar(name)
+        if not p or p.Get() is None:
+            return None
+        arr = np.asarray(p.Get(), dtype=dtype)
+        return arr.reshape(shape) if shape else arr
+
+    faces = None
+    ids = None
+    if prim.IsA(UsdGeom.Mesh):
+        faces = np.asarray(UsdGeom.Mesh(prim).GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
+    else:
+        ids = np.asarray(UsdGeom.Points(prim).GetIdsAttr().Get(), dtype=np.int64)
+    return ElementSet(
+        key=prim.GetName(), kind="mesh" if faces is not None else "points", points=pts, faces=faces,
+        uncertainty_model=str(api.GetPrimvar("gdt:uncertaintyModel").Get()),
+        covariance=pv("gdt:covariance", np.float32, (-1, 6)), half_widths=pv("gdt:halfWidths", np.float32),
+        rotation=pv("gdt:rotation", np.float32, (-1, 3, 3)), uncertainty_summary=pv("gdt:uncertainty", np.float32),
+        state=pv("gdt:changeState", np.uint8), score=pv("gdt:changeScore", np.float32),
+        source_epoch=pv("gdt:sourceEpoch", np.int32), visible=pv("gdt:visible", bool), ids=ids,
+        p_value=pv("gdt:pValue", np.float32), reason=pv("gdt:fusionReason", np.uint8),
+        reason_ratio=pv("gdt:fusionRatio", np.float32))

@@ -1,0 +1,43 @@
+"""The names and codes a twin store writes: change-state and fusion-reason codes, display colours, file and prim
+paths, and the documentation attached to the per-element primvars."""
+
+from __future__ import annotations
+
+import numpy as np
+
+STATE_NAMES: tuple[str, ...] = ("unchanged", "new", "removed", "outside_rov")
+STATE_COLORS = np.array([[0.7, 0.7, 0.7], [0.1, 0.75, 0.2], [0.85, 0.1, 0.1], [0.3, 0.45, 0.9]], dtype=np.float32)
+ROOT_NAME = "twin.usda"
+EPOCH_DIR = "epochs"
+ROV_PRIM = "/RegionsOfView"
+SEGMENTS_PRIM = "/Segments"
+TWIN_PRIM = "/Twin"
+
+# why an element is (or is not) in the composite after an epoch's fusion; the codes are gdt:fusionReason
+REASON_NAMES: tuple[str, ...] = (
+    "baseline",            # 0: the element came with the first epoch (or no fusion decided about it)
+    "kept",                # 1: known element, still in the composite
+    "new",                 # 2: changed element of the epoch's data, came in
+    "removed",             # 3: known element in the region of view that no recent data matches: hidden
+    "outside_rov",         # 4: known element outside the region of view: kept as it was
+    "replaced",            # 5: known element imaged by more precise (or, by policy, newer) data: hidden
+    "replaces",            # 6: unchanged recent element that took the place of known data
+    "known_more_precise",  # 7: unchanged recent element hidden: the known data it images is as precise or better
+    "design_stays",        # 8: unchanged recent element hidden: it images design (CAD) geometry, which stays
+    "known_stays",         # 9: unchanged recent element hidden: the policy keeps known data (or it images none)
+)
+
+DOC_UNCERTAINTY = "Scalar uncertainty per element for display: RMS standard deviation (twin units)."
+DOC_SCORE = "Change score per element (dissimilarity); NaN where not scored."
+DOC_STATE = "Per-element change state code: " + ", ".join(f"{i}={n}" for i, n in enumerate(STATE_NAMES)) + "."
+DOC_SOURCE_EPOCH = "Index of the epoch that supplied the element."
+DOC_VISIBLE = "Element is part of the composite at this epoch; hidden elements stay in the history."
+DOC_COVARIANCE = ("Per-element positional covariance, 6 floats per element in the order xx xy xz yy yz zz "
+                  "(twin units²).")
+DOC_HALF_WIDTHS = "GUM rectangular error limits: box half-widths per element (twin units)."
+DOC_P_VALUE = "p-value of the change test per element (NaN where not tested)."
+DOC_REASON = ("Per-element fusion reason code: " + ", ".join(f"{i}={n}" for i, n in enumerate(REASON_NAMES))
+              + ". Hidden elements keep the reason they left with.")
+DOC_RATIO = ("The fusion rule's number per element: √det Σ of the new data over that of the known data it was "
+             "compared with (replaced, replaces, known_more_precise); NaN where no comparison was made.")
+DOC_ROTATION = "Box axes per element: a row-major 3x3 rotation whose columns are the axes."

@@ -1,0 +1,215 @@
+"""Building blocks for distance stages (paper Sec. 4.2.1), public so that a plugin's measure reuses what the built-in
+ones use:
+
+- ``pair_groups``: the candidate pairs of one recent dataset, grouped so that each group has one reference
+  uncertainty model (``PairGroup``: means and uncertainties of both sides);
+- ``lowest_per_element``: per element, the lowest candidate score ("the candidate with the lower change score wins");
+- ``null_simulator``: scores of unchanged pairs drawn from the actual uncertainty models (``Scores.simulate``, what
+  the ``calibrated_threshold`` stage needs);
+- ``run_pair_measure`` and ``distance_stage``: turn a pair function into a distance stage;
+- ``euclidean``: the plain (cloud-to-cloud) distance as a pair function;
+- ``reference_cloud``: the composite so far as one point cloud, for measures that compare clouds rather than pairs.
+
+A pair function (``PairMeasure``) takes a ``PairGroup`` and the stage's generator and returns, per pair, the score,
+the p-value (or None) and an integration error bound (an empty array when the score is exact).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel
+
+from .geometry import sample_surface
+from .plugins import StageContext, StageSpec
+from .types import Composite, Correspondences, Dataset, Scores
+
+MeasureResult = tuple[np.ndarray, np.ndarray | None, np.ndarray]
+PairMeasure = Callable[["PairGroup", np.random.Generator], MeasureResult]
+ParamsMeasure = Callable[["PairGroup", np.random.Generator, Any], MeasureResult]
+Prepare = Callable[[list["PairGroup"], int], list["PairGroup"]]
+NullSimulator = Callable[[np.random.Generator, int], np.ndarray]
+DISTANCE_REQUIRES = ("recent", "reference", "correspondences")
+
+
+@dataclass(frozen=True)
+class PairGroup:
+    """Candidate pairs of one recent dataset sharing one reference model: candidate indices, the query elements they
+    belong to, means and uncertainties of both sides."""
+
+    idx: np.ndarray
+    elements: np.ndarray
+    mu_q: np.ndarray
+    u_q: Any
+    mu_r: np.ndarray
+    u_r: Any
+    ref_items: np.ndarray
+    ref_elements: np.ndarray
+    normal: np.ndarray | None = None  # local surface normal per pair, for tests along the normal
+
+    def subset(self, sel: np.ndarray, mu_q: np.ndarray | None = None, mu_r: np.ndarray | None = None) -> PairGroup:
+        """The pairs ``sel`` of this group, optionally with other means (simulated ones)."""
+        return PairGroup(self.idx[sel], self.elements[sel], self.mu_q[sel] if mu_q is None else mu_q,
+                         take_rows(self.u_q, sel), self.mu_r[sel] if mu_r is None else mu_r, take_rows(self.u_r, sel),
+                         self.ref_items[sel], self.ref_elements[sel], None if self.normal is None else self.normal[sel])
+
+
+def uncertainty_rows(u: Any) -> int:
+    """Rows an uncertainty model holds (1: one model shared by every element)."""
+    for name in ("cov", "half_widths", "weights"):
+        arr = getattr(u, name, None)
+        if arr is not None:
+            return arr.shape[0]
+    raise TypeError(type(u).__name__)
+
+
+def take_rows(u: Any, idx: np.ndarray) -> Any:
+    """The rows ``idx`` of an uncertainty model (a shared one-row model stays as it is)."""
+    return u if uncertainty_rows(u) == 1 else u.take(idx)
+
+
+def _expand(u: Any, n: int) -> Any:
+    return u if uncertainty_rows(u) == n else u.take(np.zeros(n, dtype=np.int64))
+
+
+def pair_groups(ds: Dataset, corr: Correspondences, reference: Composite) -> list[PairGroup]:
+    """The candidate pairs of one recent dataset, grouped so that each group has one reference uncertainty model."""
+    if ds.uncertainty is None:
+        raise ValueError(f"recent dataset {ds.name!r} has no uncertainty: add an uncertainty stage before this one")
+    found = np.flatnonzero(corr.found)
+    elem = corr.element
+    qpos = corr.query_position if corr.query_position is not None else ds.element_positions()[elem]
+    groups = []
+    if corr.ref_uncertainty is not None:  # per-candidate reference models (mixtures of neighbours)
+        over = found[corr.ref_row[found] >= 0]
+        if over.size:
+            groups.append(PairGroup(over, elem[over], qpos[over], take_rows(ds.uncertainty, elem[over]),
+                                    corr.position[over], take_rows(corr.ref_uncertainty, corr.ref_row[over]),
+                                    corr.ref_item[over], corr.ref_element[over]))
+        found = found[corr.ref_row[found] < 0]
+    for item in np.unique(corr.ref_item[found]):
+        sel = found[corr.ref_item[found] == item]
+        ref = reference.items[item].dataset
+        if ref.uncertainty is None:
+            raise ValueError(f"reference dataset {ref.name!r} has no uncertainty")
+        groups.append(PairGroup(sel, elem[sel], qpos[sel], take_rows(ds.uncertainty, elem[sel]), corr.position[sel],
+                                take_rows(ref.uncertainty, corr.ref_element[sel]), corr.ref_item[sel],
+                                corr.ref_element[sel]))
+    return groups
+
+
+def lowest_per_element(elements: np.ndarray, cand_score: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per element, the lowest candidate score (NaN when it has none) and the index of that candidate (−1)."""
+    key = np.where(np.isnan(cand_score), np.inf, cand_score)
+    order = np.lexsort((key, elements))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = elements[order][1:] != elements[order][:-1]
+    best = order[first]
+    score = np.full(n, np.nan)
+    match = np.full(n, -1, dtype=np.int64)
+    ok = np.isfinite(key[best])
+    score[elements[best[ok]]] = cand_score[best[ok]]
+    match[elements[best[ok]]] = best[ok]
+    return score, match
+
+
+def _sample_offsets(u: Any, n: int, rng: np.random.Generator) -> np.ndarray:
+    return u.sample(n, rng, 1)[:, 0, :]
+
+
+def null_simulator(groups: list[PairGroup], measure: PairMeasure) -> NullSimulator:
+    """Scores of unchanged pairs: both measurements of the same true position, each off by its own model's error."""
+    sizes = np.array([len(g.idx) for g in groups])
+
+    def simulate(rng: np.random.Generator, n: int) -> np.ndarray:
+        if sizes.sum() == 0:
+            return np.zeros(0)
+        pick = rng.integers(0, sizes.sum(), n)
+        owner = np.searchsorted(np.cumsum(sizes), pick, side="right")
+        out = []
+        for g_i in np.unique(owner):
+            g = groups[g_i]
+            local = pick[owner == g_i] - (sizes[:g_i].sum() if g_i else 0)
+            sub = g.subset(local)
+            truth = sub.mu_r
+            sim = g.subset(local, mu_q=truth + _sample_offsets(_expand(sub.u_q, len(local)), len(local), rng),
+                           mu_r=truth + _sample_offsets(_expand(sub.u_r, len(local)), len(local), rng))
+            out.append(measure(sim, rng)[0])
+        return np.concatenate(out)
+
+    return simulate
+
+
+def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: PairMeasure,
+                  prepare: Prepare | None = None) -> tuple[Scores, float]:
+    """The ``Scores`` of one recent dataset (lowest candidate per element, null simulator attached) and the largest
+    integration error of its pairs; ``Scores.tolerance`` is left for the caller."""
+    ds = ctx["recent"][corr.query]
+    m = len(corr.ref_item)
+    cand_score = np.full(m, np.nan)
+    cand_p = None
+    worst = 0.0
+    groups = pair_groups(ds, corr, ctx["reference"])
+    if prepare is not None:
+        groups = prepare(groups, corr.query)
+    for g in groups:
+        s, p, err = measure(g, ctx.rng)
+        cand_score[g.idx] = s
+        if p is not None:
+            if cand_p is None:
+                cand_p = np.full(m, np.nan)
+            cand_p[g.idx] = p
+        if err.size:
+            worst = max(worst, float(np.max(err)))
+    score, match = lowest_per_element(corr.element, cand_score, ds.n_elements)
+    p_value = None
+    if cand_p is not None:
+        p_value = np.where(match >= 0, cand_p[np.maximum(match, 0)], np.nan)
+    return Scores(query=corr.query, score=score, measure=name, p_value=p_value, tolerance=None,
+                  simulate=null_simulator(groups, measure), match=match), worst
+
+
+def run_pair_measure(ctx: StageContext, name: str, measure: PairMeasure, tolerance: float | None = None,
+                     prepare: Prepare | None = None) -> dict[str, Any]:
+    """A distance stage's whole run: every candidate pair scored by ``measure``, the lowest per element kept.
+
+    ``tolerance`` (ε_T) is reported with each ``Scores`` (raised to the largest integration error met so far);
+    ``prepare(groups, query)`` may add to the pair groups of a recent dataset (e.g. local normals) first.
+    """
+    out = []
+    worst = 0.0
+    with ctx.progress.task(f"{name} scores", total=len(ctx["correspondences"])) as advance:
+        for corr in ctx["correspondences"]:
+            scores, err = score_dataset(ctx, corr, name, measure, prepare)
+            worst = max(worst, err)
+            out.append(dataclasses.replace(scores, tolerance=None if tolerance is None else max(tolerance, worst)))
+            advance()
+    ctx.report(max_integration_error=worst, tolerance=tolerance)
+    return {"scores": out}
+
+
+def distance_stage(*, name: str, measure: ParamsMeasure, params: type[BaseModel], version: str,
+                   description: str = "") -> StageSpec:
+    """A distance stage from a pair function ``measure(group, rng, params)``; ``params`` is the validated model."""
+
+    def run(ctx: StageContext) -> dict[str, Any]:
+        return run_pair_measure(ctx, name, lambda g, rng: measure(g, rng, ctx.params))
+
+    return StageSpec(name=name, family="distance", version=version, params=params, run=run,
+                     requires=DISTANCE_REQUIRES, provides=("scores",), description=description)
+
+
+def euclidean(group: PairGroup, rng: np.random.Generator, scale: float = 1.0) -> MeasureResult:
+    """The plain Euclidean (cloud-to-cloud) distance of each pair, times ``scale``; no p-value, exact."""
+    return np.linalg.norm(group.mu_q - group.mu_r, axis=1) * scale, None, np.zeros(0)
+
+
+def reference_cloud(reference: Composite, spacing: float, rng: np.random.Generator) -> np.ndarray:
+    """The visible part of the composite as one point cloud: its visible points, its visible facets sampled about
+    once per ``spacing``² (at least once each), item by item."""
+    parts = [sample_surface(item.dataset, spacing, rng, np.flatnonzero(item.visible)) for item in reference.items]
+    return np.concatenate(parts) if parts else np.zeros((0, 3))

@@ -14,7 +14,7 @@ import numpy as np
 import open3d as o3d
 
 from gdt_pipeline.runner import run_workflow
-from gdt_pipeline.scenes import make_test_scene
+from gdt_pipeline.simulation import make_test_scene
 from twin_store import TwinStore
 
 WORKFLOW = """\

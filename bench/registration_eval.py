@@ -15,7 +15,7 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from gdt_pipeline.runner import run_workflow
-from gdt_pipeline.scenes import make_test_scene
+from gdt_pipeline.simulation import make_test_scene
 from twin_store import TwinStore
 
 REPO = Path(__file__).resolve().parents[1]

@@ -30,12 +30,11 @@ import numpy as np
 
 from twin_store import TwinStore
 
-from .geometry import ReferenceIndex
+from .geometry import ReferenceIndex, distance_to
 from .names import identifier
 from .plugins import Registry, load_registry
 from .runner import read_dataset, run_workflow
 from .sensors import PRESETS
-from .simulate import distance_to
 from .types import ChangeState, Composite, CompositeItem, Dataset
 from .workflow import load_workflow
 

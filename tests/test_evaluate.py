@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from gdt_pipeline.cli import cli
 from gdt_pipeline.evaluate import evaluate, format_table, missing_scene
-from gdt_pipeline.fuselage_scene import make_fuselage_scene
+from gdt_pipeline.simulation import make_fuselage_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -186,20 +186,15 @@ def test_each_element_records_why_it_is_in_the_composite_and_the_twin_keeps_it(r
 def _bracket_scan(sweep: bool) -> tuple[np.ndarray, np.ndarray]:
     """Structured-light points on one new bracket of the fuselage scene: from the six overview stations, or with the
     handheld sweep along its web; and the bracket's solid centre."""
-    from gdt_pipeline.fuselage_scene import (
-        WEB_ANGLES_DEG,
-        _station,
-        _web_station,
-        fuselage_objects,
-    )
-    from gdt_pipeline.simulate import ScannerSpec, simulate_scan
+    from gdt_pipeline.simulation import ScannerSpec, simulate_scan
+    from gdt_pipeline.simulation.fuselage import WEB_ANGLES_DEG, fuselage_objects, station, web_station
 
     objects = fuselage_objects()
     present = [n for n in objects if n != "bracket_removed"]
     meshes = [objects[n][0] for n in present]
-    stations = [_station(x, deg, 0.9) for x in (0.53, 1.07) for deg in (-28.0, 0.0, 28.0)]
+    stations = [station(x, deg, 0.9) for x in (0.53, 1.07) for deg in (-28.0, 0.0, 28.0)]
     if sweep:
-        stations += [_web_station(1, +1, deg) for deg in WEB_ANGLES_DEG]  # bracket_new_3 sits at frame 1, side +1
+        stations += [web_station(1, +1, deg) for deg in WEB_ANGLES_DEG]  # bracket_new_3 sits at frame 1, side +1
     spec = ScannerSpec(profile="structured_light", points_per_m2=40000.0, fov_deg=60.0, max_range=3.0)
     rng = np.random.default_rng(3)
     k = present.index("bracket_new_3")
@@ -213,7 +208,7 @@ def _bracket_scan(sweep: bool) -> tuple[np.ndarray, np.ndarray]:
 def test_a_catalogue_part_fitted_to_a_new_segment_gives_its_centre(registry, scene, tmp_path) -> None:
     from pathlib import Path
 
-    from gdt_pipeline.fuselage_scene import bracket_part
+    from gdt_pipeline.simulation.fuselage import bracket_part
     from stages.fusion.parts import fit_part, load_part
     from twin_store import TwinStore
 
@@ -257,7 +252,7 @@ def test_a_catalogue_part_fitted_to_a_new_segment_gives_its_centre(registry, sce
 def test_segments_one_fitted_part_explains_become_one(registry, scene, tmp_path) -> None:
     # a radius below the gap where the leg hides the corner parts the bracket; its model fitted to the pieces
     # together joins them into one segment with the part's centre
-    from gdt_pipeline.fuselage_scene import bracket_part
+    from gdt_pipeline.simulation.fuselage import bracket_part
 
     part_path = tmp_path / "bracket.obj"
     bracket_part().export(part_path)

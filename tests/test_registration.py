@@ -14,7 +14,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from gdt_pipeline import Composite, CompositeItem, Dataset, EpochInfo, StageContext
-from gdt_pipeline.scenes import scene_objects, simulate_tof_scan
+from gdt_pipeline.simulation import scene_objects, simulate_stations
 
 from .conftest import SHARED_DATA
 
@@ -34,8 +34,8 @@ def _cad_composite() -> tuple[Composite, list[trimesh.Trimesh]]:
 def _scan(meshes: list, noise: float, seed: int = 0) -> np.ndarray:
     az = np.radians([-60.0, 30.0, 150.0])
     vps = np.column_stack([2.0 * np.cos(az), 2.0 * np.sin(az), np.full(3, 1.2)])
-    return simulate_tof_scan(meshes, vps, np.array([0, 0, 0.15]), rng=np.random.default_rng(seed),
-                             points_per_m2=20000, noise_sigma=noise)
+    return simulate_stations(meshes, vps, np.array([0, 0, 0.15]), rng=np.random.default_rng(seed),
+                            points_per_m2=20000, noise_sigma=noise)
 
 
 def _register(registry, name: str, params: dict, points: np.ndarray, comp: Composite, tmp_path: Path = Path(".")):

@@ -12,7 +12,7 @@ import pytest
 from pxr import Usd, UsdGeom
 
 from gdt_pipeline.runner import run_workflow
-from gdt_pipeline.scenes import make_test_scene, scene_objects
+from gdt_pipeline.simulation import make_test_scene, scene_objects
 
 from .conftest import REPO
 

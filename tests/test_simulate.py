@@ -10,9 +10,9 @@ import pytest
 import trimesh
 
 from gdt_pipeline.evaluate import _candidates, _prf, _sweep
-from gdt_pipeline.fuselage_scene import NEW_BRACKETS, fuselage_objects, make_fuselage_scene
 from gdt_pipeline.sensors import PRESETS
-from gdt_pipeline.simulate import ScannerSpec, simulate_scan, write_scan
+from gdt_pipeline.simulation import ScannerSpec, make_fuselage_scene, simulate_scan, write_scan
+from gdt_pipeline.simulation.fuselage import NEW_BRACKETS, fuselage_objects
 
 
 def _wall(x: float = 0.0, size: float = 4.0) -> trimesh.Trimesh:

@@ -19,7 +19,7 @@ from pxr import Sdf, Usd, UsdGeom, UsdValidation
 
 from gdt_pipeline.render import render_stage
 from gdt_pipeline.runner import run_workflow
-from gdt_pipeline.scenes import make_test_scene, scene_objects
+from gdt_pipeline.simulation import make_test_scene, scene_objects
 from twin_store import TwinStore, TwinStoreError, writer_lock
 
 from .conftest import REPO, CubeScene, run_gdt, write_cube_workflow

@@ -144,7 +144,7 @@ def test_voxel_mle_in_a_workflow(tmp_path: Path, registry) -> None:
     from pxr import Usd, UsdGeom
 
     from gdt_pipeline.runner import run_workflow
-    from gdt_pipeline.scenes import make_test_scene
+    from gdt_pipeline.simulation import make_test_scene
 
     from .conftest import REPO
 

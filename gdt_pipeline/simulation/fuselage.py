@@ -24,9 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .paper_scenes import TOLERANCE, EpochFiles, _facets_in_view
-from .scenes import write_objects
-from .simulate import ScannerSpec, distance_to, simulate_scan, write_scan
+from ..geometry import distance_to
+from .objects import write_objects
+from .paper_scene import TOLERANCE, EpochFiles
+from .scanner import ScannerSpec, simulate_scan, write_scan
+from .visibility import facets_in_view_of_stations
 
 RADIUS = 1.95
 LENGTH = 1.6
@@ -124,14 +126,14 @@ def fuselage_objects() -> dict[str, tuple[object, str]]:
     return objects
 
 
-def _station(x: float, angle_deg: float, standoff: float) -> tuple[np.ndarray, np.ndarray]:
+def station(x: float, angle_deg: float, standoff: float) -> tuple[np.ndarray, np.ndarray]:
     """A scanner inside the cabin looking straight out at the skin: (eye, target)."""
     a = np.radians(angle_deg)
     radial = np.array([0.0, np.cos(a), np.sin(a)])
     return np.array([x, 0, 0]) + radial * (RADIUS - standoff), np.array([x, 0, 0]) + radial * RADIUS
 
 
-def _web_station(frame: int, side: int, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
+def web_station(frame: int, side: int, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """A handheld station in the bay on ``side`` of a frame, 0.5 m along the axis from the web and 0.18 m inside the
     skin, looking back at the web face where brackets sit: (eye, target)."""
     a = np.radians(angle_deg)
@@ -167,10 +169,10 @@ def make_fuselage_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: fl
     before = [objects[n][0] for n in cad_names]
     spec = ScannerSpec(profile="structured_light", points_per_m2=points_per_m2, fov_deg=60.0, max_range=3.0)
     web_spec = spec.model_copy(update={"points_per_m2": web_points_per_m2})
-    stations = [_station(x, deg, 0.9) for x in (0.53, 1.07) for deg in (-28.0, 0.0, 28.0)]
+    stations = [station(x, deg, 0.9) for x in (0.53, 1.07) for deg in (-28.0, 0.0, 28.0)]
     specs = [spec] * len(stations)
     if sweep:
-        stations += [_web_station(f, side, deg) for f, side in BRACKET_WEBS for deg in WEB_ANGLES_DEG]
+        stations += [web_station(f, side, deg) for f, side in BRACKET_WEBS for deg in WEB_ANGLES_DEG]
         specs += [web_spec] * (len(stations) - len(specs))
     (out / "part_bracket.obj").write_text(bracket_part().export(file_type="obj", include_normals=False,
                                                                 include_texture=False))
@@ -192,7 +194,7 @@ def make_fuselage_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: fl
     eyes = np.array([s[0] for s in stations])
     for n in cad_names:
         mesh = objects[n][0]
-        truth[f"in_view__{n}"] = _facets_in_view_multi(mesh, stations, now, spec)  # frusta: same fov for all
+        truth[f"in_view__{n}"] = facets_in_view_of_stations(mesh, stations, now, spec)  # frusta: same fov for all
         truth[f"removed__{n}"] = np.full(len(mesh.faces), n == "bracket_removed")
     path = out / "truth_E1.npz"
     with open(path, "wb") as fh:
@@ -204,11 +206,3 @@ def make_fuselage_scene(out_dir: str | Path, *, seed: int = 0, points_per_m2: fl
     (out / "scene.json").write_text(json.dumps(summary, indent=2) + "\n")
     return files
 
-
-def _facets_in_view_multi(mesh, stations: list[tuple[np.ndarray, np.ndarray]], blockers: list, spec: ScannerSpec
-                          ) -> np.ndarray:
-    """Whether any of the stations (each with its own target) sees each facet."""
-    seen = np.zeros(len(mesh.faces), dtype=bool)
-    for eye, target in stations:
-        seen |= _facets_in_view(mesh, eye[None, :], blockers, spec, target)
-    return seen

@@ -20,8 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .scenes import scene_objects, write_objects
-from .simulate import ScannerSpec, distance_to, raycasting_scene, simulate_scan, write_scan
+from ..geometry import distance_to
+from .objects import scene_objects, write_objects
+from .scanner import ScannerSpec, simulate_scan, write_scan
+from .visibility import facets_in_view
 
 TOLERANCE = 0.001  # m: a clean point farther than this from the previous as-is surfaces lies on changed geometry
 
@@ -39,31 +41,6 @@ class EpochFiles:
 def _stations(n: int, radius: float, height: float, start_deg: float, span_deg: float) -> np.ndarray:
     az = np.radians(start_deg + np.linspace(0, span_deg, n, endpoint=n == 1 or span_deg < 360))
     return np.column_stack([radius * np.cos(az), radius * np.sin(az), np.full(n, height)])
-
-
-def _facets_in_view(mesh, stations: np.ndarray, blockers: list, spec: ScannerSpec, target: np.ndarray) -> np.ndarray:
-    """Whether any station sees each facet's centroid: inside its field of view, in range, not occluded."""
-    import open3d as o3d
-
-    scene = raycasting_scene(blockers)
-    c = mesh.triangles_center
-    seen = np.zeros(len(c), dtype=bool)
-    for eye in stations:
-        d = c - eye
-        dist = np.linalg.norm(d, axis=1)
-        d /= dist[:, None]
-        fwd = (target - eye) / np.linalg.norm(target - eye)
-        half_h = np.radians(spec.fov_deg) / 2
-        half_v = np.arctan(np.tan(half_h) / spec.aspect)
-        right = np.cross(fwd, [0, 0, 1.0])
-        right /= np.linalg.norm(right)
-        up = np.cross(right, fwd)
-        inside = (np.abs(np.arctan2(d @ right, d @ fwd)) <= half_h) & (np.abs(np.arctan2(d @ up, d @ fwd)) <= half_v)
-        facing = np.einsum("ij,ij->i", mesh.face_normals, -d) > 0.05
-        t = scene.cast_rays(o3d.core.Tensor(np.hstack([np.broadcast_to(eye, d.shape), d]).astype(np.float32)))
-        clear = ~(t["t_hit"].numpy() < dist - 1e-4) if blockers else np.ones(len(c), bool)
-        seen |= inside & facing & clear & (dist <= spec.max_range)
-    return seen
 
 
 def make_paper_test_scene(out_dir: str | Path, *, seed: int = 0) -> dict[str, EpochFiles]:
@@ -113,7 +90,7 @@ def make_paper_test_scene(out_dir: str | Path, *, seed: int = 0) -> dict[str, Ep
         if eid == "E3":
             for n in present[prev]:
                 mesh = objects[n][0]
-                truth[f"in_view__{n}"] = _facets_in_view(mesh, stations, now, spec, target)
+                truth[f"in_view__{n}"] = facets_in_view(mesh, stations, now, spec, target)
                 truth[f"removed__{n}"] = np.full(len(mesh.faces), n not in present[eid])
         path = out / f"truth_{eid}.npz"
         with open(path, "wb") as fh:

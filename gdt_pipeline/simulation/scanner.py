@@ -19,8 +19,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
 from scipy.spatial.transform import Rotation
 
-from .geometry import distance_to, raycasting_scene  # noqa: F401  (re-exported until the move)
-from .sensors import PRESETS, SensorProfile
+from ..geometry import beam_frames, raycasting_scene
+from ..sensors import PRESETS, SensorProfile
 
 
 class ScannerSpec(BaseModel):
@@ -96,10 +96,7 @@ def simulate_scan(meshes: list, eye: np.ndarray, target: np.ndarray, spec: Scann
     normals = ans["primitive_normals"].numpy()[hit].astype(np.float64)
     cos = np.abs(np.einsum("ij,ij->i", normals, d))
     s_r, s_l = profile.sigmas(dist[hit], cos, "m")
-    helper = np.where(np.abs(d[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
-    u = np.cross(d, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.cross(d, u)
+    u, v = beam_frames(d)
     z = rng.standard_normal((len(clean), 3))
     noisy = clean + d * (z[:, :1] * s_r[:, None]) + (u * z[:, 1:2] + v * z[:, 2:3]) * s_l[:, None]
     err = np.eye(4)

@@ -1,0 +1,5 @@
+"""``python -m gdt_pipeline.cli``: the same as the ``gdt`` command."""
+
+from . import main
+
+main()

@@ -1,0 +1,143 @@
+"""The workflow commands: run, validate, plugins, schema."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import click
+from rich.console import Console
+from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from ..errors import WorkflowError
+from .common import EXIT_ERROR, err_console, installed_registry, out_console, setup_logging
+
+
+class RichProgress:
+    """Progress tasks of stages shown as rich progress bars."""
+
+    def __init__(self, progress: Progress) -> None:
+        self._p = progress
+
+    @contextlib.contextmanager
+    def task(self, description: str, total: float) -> Iterator[Any]:
+        """A bar for the duration of the block."""
+        tid = self._p.add_task(description, total=total)
+        try:
+            yield lambda advance=1.0: self._p.advance(tid, advance)
+        finally:
+            self._p.remove_task(tid)
+
+
+def rich_reporter(progress: Progress | None) -> Any:
+    """A runner Reporter that prints each epoch and stage on stderr (and shows stage progress bars)."""
+    from ..runner import Reporter
+
+    class RichReporter(Reporter):
+        def __init__(self) -> None:
+            if progress is not None:
+                self.progress = RichProgress(progress)
+
+        def epoch_started(self, epoch: Any, index: int, total: int) -> None:
+            err_console.print(f"[bold]epoch {epoch.id}[/] ({index + 1}/{total}, {epoch.role}, "
+                              f"{len(epoch.inputs)} input{'s' if len(epoch.inputs) != 1 else ''})")
+
+        def stage_finished(self, epoch: Any, index: int, spec: Any, seconds: float) -> None:
+            err_console.print(f"  {spec.family:<14} {spec.name:<18} {seconds:7.2f} s")
+
+        def epoch_finished(self, summary: Any) -> None:
+            c = summary.counts
+            err_console.print(f"  -> {summary.layer.name}: {c['unchanged']} unchanged, {c['new']} new, "
+                              f"{c['removed']} removed, {c['outside_rov']} outside view ({summary.seconds:.1f} s)")
+
+    return RichReporter()
+
+
+@click.command()
+@click.argument("workflow", type=click.Path(path_type=Path))
+@click.option("--twin", type=click.Path(path_type=Path), help="Write the twin here instead of the workflow's `twin:`.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing twin (only once the new one is complete).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress output.")
+@click.option("-v", "--verbose", count=True, help="More log output (-v info, -vv debug).")
+@click.option("--log-file", type=click.Path(path_type=Path), help="Append a structured JSON-lines log here.")
+def run(workflow: Path, twin: Path | None, overwrite: bool, quiet: bool, verbose: int, log_file: Path | None) -> None:
+    """Run WORKFLOW end to end and write its twin."""
+    from ..runner import run_workflow
+
+    setup_logging(verbose, log_file)
+    registry = installed_registry()
+    if quiet:
+        result = run_workflow(workflow, registry=registry, twin=twin, overwrite=overwrite)
+    else:
+        with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
+                      console=err_console, transient=True) as progress:
+            result = run_workflow(workflow, registry=registry, twin=twin, overwrite=overwrite,
+                                  reporter=rich_reporter(progress))
+    out_console.print(f"twin written to {result.twin}", highlight=False, soft_wrap=True)
+    out_console.print(f"root layer: {result.twin / 'twin.usda'}   lock: {result.lock}", highlight=False,
+                      soft_wrap=True)
+
+
+@click.command()
+@click.argument("workflows", nargs=-1, required=True, type=click.Path(path_type=Path))
+def validate(workflows: tuple[Path, ...]) -> None:
+    """Check WORKFLOWS without running them: schema, stage names, parameters, slots, input files."""
+    from ..workflow import load_workflow
+
+    registry = installed_registry()
+    failed = 0
+    for wf_path in workflows:
+        try:
+            wf = load_workflow(wf_path, registry)
+        except WorkflowError as exc:
+            failed += 1
+            for line in exc.problems:
+                click.echo(line)
+            continue
+        m = wf.model
+        click.echo(f"{wf.path}: ok ({len(m.epochs)} epochs, {len(m.stages)} stages, twin {wf.twin_path()})")
+    if failed:
+        raise SystemExit(EXIT_ERROR)
+
+
+@click.command()
+@click.option("--family", help="Only this family (reader, registrar, uncertainty, ...).")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+def plugins(family: str | None, as_json: bool) -> None:
+    """List the installed stages: family, name, plugin, version."""
+    registry = installed_registry()
+    rows = registry.stages(family)
+    if as_json:
+        click.echo(json.dumps([{"family": s.family, "name": s.name, "plugin": s.plugin,
+                                "plugin_version": s.plugin_version, "version": s.version, "entry_point": s.entry_point,
+                                "requires": list(s.requires), "provides": list(s.provides),
+                                "description": s.description} for s in rows], indent=2))
+        return
+    table = Table(title=f"gdt stages ({len(rows)})")
+    for col in ("family", "name", "plugin", "version", "requires -> provides"):
+        table.add_column(col)
+    for s in rows:
+        table.add_row(s.family, s.name, f"{s.plugin} {s.plugin_version} ({s.entry_point})", s.version,
+                      f"{', '.join(s.requires)} -> {', '.join(s.provides)}")
+    Console(width=max(120, out_console.width)).print(table)
+
+
+@click.command()
+@click.option("-o", "--output", type=click.Path(path_type=Path), help="Write to this file instead of stdout.")
+def schema(output: Path | None) -> None:
+    """Print the JSON Schema of workflow files (for `# yaml-language-server: $schema=...`)."""
+    from ..workflow import json_schema
+
+    text = json.dumps(json_schema(installed_registry()), indent=2)
+    if output:
+        output.write_text(text + "\n", encoding="utf-8")
+        err_console.print(f"schema written to {output}")
+    else:
+        click.echo(text)
+
+
+COMMANDS = (run, validate, plugins, schema)

@@ -1,0 +1,127 @@
+"""The composite every fusion builds: the known items carried over (removal needs the region of view), the recent
+items with their change states and reasons, the replacement rule where the policy has one, and the segments."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from gdt_pipeline import ChangeState, Composite, CompositeItem, FusionReason, RegionOfView, Segment, StageContext
+
+from ._fitting import fit_parts
+from ._replace import Decision, replacements
+from ._segments import segments
+
+
+def check_slots(available: frozenset[str]) -> str | None:
+    """A fusion after the first epoch needs the change results."""
+    if "reference" in available and "change" not in available:
+        return "fusion 'keep_unchanged' needs slot 'change' once a reference exists (add distance and threshold stages)"
+    return None
+
+
+def _carried(reference: Composite, rov: RegionOfView | None) -> tuple[list[CompositeItem], dict[int, np.ndarray]]:
+    """The known items with this epoch's states and reasons, and per item the elements removed now."""
+    items: list[CompositeItem] = []
+    removed_now: dict[int, np.ndarray] = {}
+    for it in reference.items:
+        state = np.where(it.state == ChangeState.NEW, ChangeState.UNCHANGED, it.state).astype(np.uint8)
+        visible = it.visible
+        # hidden elements keep the reason they left with; what is still shown is "kept" until this epoch says more
+        reason = np.where(it.visible, FusionReason.KEPT, it.reason).astype(np.uint8)
+        ratio = np.where(it.visible, np.nan, it.reason_ratio)
+        if rov is not None and it.key in rov.in_view:
+            view, matched = rov.in_view[it.key], rov.matched[it.key]
+            removed = view & ~matched & it.visible
+            state = np.where(state == ChangeState.OUTSIDE_ROV, ChangeState.UNCHANGED, state).astype(np.uint8)
+            state[it.visible & ~view] = ChangeState.OUTSIDE_ROV
+            state[removed] = ChangeState.REMOVED
+            reason[it.visible & ~view] = FusionReason.OUTSIDE_ROV
+            reason[removed] = FusionReason.REMOVED
+            visible = it.visible & ~removed
+            removed_now[len(items)] = removed
+        items.append(dataclasses.replace(it, state=state, visible=visible, reason=reason, reason_ratio=ratio))
+    return items, removed_now
+
+
+def _replace(ctx: StageContext, items: list[CompositeItem], policy: str) -> Decision:
+    """Apply the replacement rule to the known items (replaced elements are hidden, not dropped) and report it."""
+    decision = replacements(ctx, items, policy)
+    counts = {}
+    for i, mask in decision.replaced.items():
+        if mask.any():
+            it = items[i]
+            items[i] = dataclasses.replace(
+                it, visible=it.visible & ~mask,
+                reason=np.where(mask, FusionReason.REPLACED, it.reason).astype(np.uint8),
+                reason_ratio=np.where(mask, decision.replaced_ratio[i], it.reason_ratio))
+            counts[it.key] = int(mask.sum())
+    ctx.report(fusion={"policy": policy, "replaced": counts,
+                       "taking_over": {ctx["recent"][q].name: int(m.sum()) for q, m in decision.taking.items()},
+                       "rule": "unchanged recent element in view replaces its nearest known element" +
+                               (" when its √det Σ is smaller" if policy == "most_reliable" else "")})
+    return decision
+
+
+def _recent(ctx: StageContext, has_reference: bool, decision: Decision | None) -> list[CompositeItem]:
+    """The recent datasets as items of this epoch: changed elements shown, unchanged ones hidden unless they take
+    the place of known ones; the first epoch's data is the baseline."""
+    changes = {c.query: c for c in ctx.get("change") or []}
+    epoch = ctx.epoch
+    items = []
+    for qi, ds in enumerate(ctx["recent"]):
+        n = ds.n_elements
+        ch = changes.get(qi)
+        if ch is None and has_reference:
+            raise ValueError(f"dataset {ds.name!r} has no change result although a reference exists")
+        p_value = None
+        reason = np.full(n, FusionReason.BASELINE, np.uint8)
+        ratio = np.full(n, np.nan)
+        if ch is None:
+            visible = np.ones(n, dtype=bool)
+            state = np.full(n, ChangeState.UNCHANGED, dtype=np.uint8)
+            score = np.full(n, np.nan)
+        else:
+            visible, state, score, p_value = ch.mask, ch.state, ch.score, ch.p_value
+            reason[:] = FusionReason.KNOWN_STAYS
+            if decision is not None and qi in decision.reason:
+                reason, ratio = decision.reason[qi], decision.ratio[qi]
+            if decision is not None and qi in decision.taking:
+                visible = visible | decision.taking[qi]
+            reason = np.where(state == ChangeState.NEW, FusionReason.NEW, reason).astype(np.uint8)
+        items.append(CompositeItem(key=f"{epoch.id}_{ds.name}", dataset=ds, epoch=epoch.id, state=state, score=score,
+                                   source_epoch=np.full(n, epoch.index, dtype=np.int32), visible=visible,
+                                   p_value=p_value, reason=reason, reason_ratio=ratio))
+    return items
+
+
+def _segmented(ctx: StageContext, items: list[CompositeItem], n_ref: int, removed_now: dict[int, np.ndarray]
+               ) -> list[Segment]:
+    """The new segments (fitted to the catalogue parts, if any) and then the removed ones, reported."""
+    new_masks = {n_ref + qi: (items[n_ref + qi].state == ChangeState.NEW) & items[n_ref + qi].visible
+                 for qi in range(len(ctx["recent"])) if n_ref}
+    found = segments(items, new_masks, "new", ctx.params, 0)
+    if ctx.params.parts:
+        found = fit_parts(ctx, items, found)
+    found += segments(items, removed_now, "removed", ctx.params, len(found))
+    if found:
+        real = [g for g in found if not g.artefact]
+        ctx.report(segments={"new": sum(g.kind == "new" for g in real),
+                             "removed": sum(g.kind == "removed" for g in real), "artefacts": len(found) - len(real)})
+    return found
+
+
+def fuse(ctx: StageContext, policy: str | None) -> dict[str, Any]:
+    """The composite of this epoch under ``policy`` (None: keep_unchanged, no replacement)."""
+    reference = ctx.get("reference") or Composite()
+    items, removed_now = _carried(reference, ctx.get("rov"))
+    decision = None
+    if policy is not None and reference.items:
+        decision = _replace(ctx, items, policy)
+    items += _recent(ctx, bool(reference.items), decision)
+    codes = np.bincount(np.concatenate([it.reason for it in items]), minlength=len(FusionReason)) if items else []
+    ctx.report(reasons={r.name.lower(): int(codes[r]) for r in FusionReason if codes[r]})
+    found = _segmented(ctx, items, len(reference.items), removed_now)
+    return {"composite": Composite(tuple(items), tuple(found))}

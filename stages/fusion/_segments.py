@@ -1,0 +1,132 @@
+"""What every fusion shares about objects: the segmentation parameters, the spread of elements' uncertainty, and the
+connected groups (segments) of changed elements."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
+
+from gdt_pipeline import CompositeItem, Dataset, Segment
+
+
+class PartParams(BaseModel):
+    """A catalogue part to recognise among the new segments."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(description="The part's name (a part number), recorded on the segments it fits.")
+    path: str = Field(description="Its CAD model (any mesh format trimesh reads; relative to the workflow file), "
+                                  "in the part's own frame and the workflow's units.")
+    max_rms: float | None = Field(None, gt=0, description="Largest RMS point-to-surface distance of a fit it "
+                                                          "accepts (default: 2 % of the part's diagonal).")
+
+
+class SegmentParams(BaseModel):
+    """How changed elements are grouped into objects (every fusion)."""
+
+    model_config = ConfigDict(extra="forbid")
+    parts: list[PartParams] = Field(default_factory=list, description="Catalogue parts fitted to every new segment "
+                                                                      "(multi-start ICP): the segment records the "
+                                                                      "part whose model fits, its pose and centre.")
+    segment_radius: float | None = Field(None, gt=0, description="Elements closer than this are one object "
+                                                                 "(default: 3 × their typical spacing, at least "
+                                                                 "1.5σ of their largest axis).")
+    min_segment_size: int = Field(10, ge=1, description="Segments with fewer elements are reported as artefacts.")
+
+
+def spread(ds: Dataset, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """√det Σ (the volume of the error ellipsoid) and the largest-axis σ of the given elements, from one covariance
+    evaluation; inf and 0 where the dataset carries no uncertainty (it can never be the more precise)."""
+    if ds.uncertainty is None:
+        return np.full(len(idx), np.inf), np.zeros(len(idx))
+    cov = ds.element_covariance()[idx]
+    return np.sqrt(np.maximum(np.linalg.det(cov), 0.0)), np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, -1], 0.0))
+
+
+def _masked_elements(items: list[CompositeItem], masks: dict[int, np.ndarray]
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Positions, owning item, element index, score and largest-axis σ of the masked elements of all items, stacked
+    (None when no element is masked)."""
+    pos, owner, elem, score, sig = [], [], [], [], []
+    for i, mask in masks.items():
+        idx = np.flatnonzero(mask)
+        if not idx.size:
+            continue
+        ds = items[i].dataset
+        pos.append(ds.element_positions()[idx])
+        owner.append(np.full(idx.size, i))
+        elem.append(idx)
+        score.append(items[i].score[idx])
+        sig.append(spread(ds, idx)[1])
+    if not pos:
+        return None
+    return np.vstack(pos), np.concatenate(owner), np.concatenate(elem), np.concatenate(score), np.concatenate(sig)
+
+
+def _labels(pos_a: np.ndarray, sig_a: np.ndarray, params: SegmentParams) -> np.ndarray:
+    """Connected-component label of each element in the graph of elements closer than the segment radius."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    tree = cKDTree(pos_a)
+    radius = params.segment_radius
+    if radius is None:
+        gap = tree.query(pos_a, k=2)[0][:, 1] if len(pos_a) > 1 else np.zeros(1)
+        radius = max(3.0 * float(np.median(gap)), 1.5 * float(np.median(sig_a)), 1e-9)
+    pairs = tree.query_pairs(radius, output_type="ndarray")
+    n = len(pos_a)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
+        coo_matrix((n, n))
+    _, label = connected_components(graph, directed=False)
+    return label
+
+
+def segments(items: list[CompositeItem], masks: dict[int, np.ndarray], kind: str, params: SegmentParams,
+             start_id: int) -> list[Segment]:
+    """Connected groups (radius graph) of the masked elements over all items."""
+    stacked = _masked_elements(items, masks)
+    if stacked is None:
+        return []
+    pos_a, owner_a, elem_a, score_a, sig_a = stacked
+    label = _labels(pos_a, sig_a, params)
+    order = np.argsort(label, kind="stable")
+    bounds = np.flatnonzero(np.diff(label[order])) + 1
+    out = []
+    groups = sorted(np.split(order, bounds), key=lambda g: (-len(g), int(g.min())))  # largest first, stable ids
+    for k, g in enumerate(groups):
+        members = {items[i].key: np.sort(elem_a[g][owner_a[g] == i]) for i in np.unique(owner_a[g])}
+        finite = score_a[g][np.isfinite(score_a[g])]
+        out.append(Segment(id=start_id + k, kind=kind, centroid=pos_a[g].mean(axis=0), lower=pos_a[g].min(axis=0),
+                           upper=pos_a[g].max(axis=0), mean_score=float(finite.mean()) if finite.size else float("nan"),
+                           size=len(g), artefact=len(g) < params.min_segment_size, members=members))
+    return out
+
+
+def merged(parts: list[Segment], points: dict[int, np.ndarray]) -> Segment:
+    """One segment of several (their members, positions and scores pooled) under the first one's id."""
+    members: dict[str, list[np.ndarray]] = {}
+    for g in parts:
+        for key, idx in g.members.items():
+            members.setdefault(key, []).append(idx)
+    pts = np.vstack([points[g.id] for g in parts])
+    sizes = np.array([g.size for g in parts], dtype=np.float64)
+    scores = np.array([g.mean_score for g in parts])
+    ok = np.isfinite(scores)
+    mean_score = float(np.average(scores[ok], weights=sizes[ok])) if ok.any() else float("nan")
+    return dataclasses.replace(parts[0], centroid=pts.mean(axis=0), lower=pts.min(axis=0), upper=pts.max(axis=0),
+                               mean_score=mean_score, size=int(sizes.sum()), artefact=False,
+                               members={k: np.sort(np.concatenate(v)) for k, v in members.items()})
+
+
+def nearest_within(seed: Segment, others: list[Segment], reach: float) -> list[Segment]:
+    """``seed`` and, nearest first, the other segments whose boxes keep the group's box diagonal within ``reach``."""
+    group, lo, hi = [seed], seed.lower, seed.upper
+    for h in sorted((h for h in others if h.id != seed.id),
+                    key=lambda h: float(np.linalg.norm(h.centroid - seed.centroid))):
+        lo2, hi2 = np.minimum(lo, h.lower), np.maximum(hi, h.upper)
+        if np.linalg.norm(hi2 - lo2) <= reach:
+            group.append(h)
+            lo, hi = lo2, hi2
+    return group

@@ -4,7 +4,7 @@ detection. This module is the public API a plugin builds on: the hook marker, th
 from importlib.metadata import PackageNotFoundError, version
 
 from .errors import GdtError, InputError, PluginError, StageError, WorkflowError
-from .plugins import ReadRequest, StageContext, StageSpec, hookimpl, hookspec
+from .plugins import ReaderSpec, ReadRequest, StageContext, StageSpec, hookimpl, hookspec
 from .types import (
     BoxUncertainty,
     Change,
@@ -47,6 +47,7 @@ __all__ = [
     "MixtureUncertainty",
     "PluginError",
     "ReadRequest",
+    "ReaderSpec",
     "Region99",
     "RegionOfView",
     "Registration",

@@ -26,6 +26,7 @@ from twin_store import ElementSet, TwinStore
 
 from .errors import GdtError, PluginError
 from .plugins import Registry, load_registry
+from .provenance import EpochProvenance, StageRecord
 from .runner import EpochPlan, InputPlan, RunPlan, StagePlan, execute_plan, sha256_file
 
 EXACT_FIELDS = ("faces", "ids", "state", "visible", "source_epoch")
@@ -133,6 +134,39 @@ def compare_element_sets(stored: list[ElementSet], rerun: list[ElementSet], *, r
     return diffs, exact and not diffs
 
 
+def _input_plans(prov: EpochProvenance, base: Path, problems: list[str]) -> list[InputPlan]:
+    """The inputs an epoch read, located under ``base``; a missing or changed file is added to ``problems``."""
+    inputs = []
+    for rec in prov.inputs:
+        path = base / rec.path
+        if not path.is_file():
+            problems.append(f"input {rec.path} is missing (looked at {path}; recorded sha256 {rec.sha256[:16]}...)")
+        elif sha256_file(path) != rec.sha256:
+            problems.append(f"input {rec.path} has changed: sha256 {sha256_file(path)} is not the recorded "
+                            f"{rec.sha256}")
+        inputs.append(InputPlan(path=path, name=rec.name, kind=rec.kind_hint, reader=rec.reader, units=rec.units,
+                                viewpoints=rec.viewpoints, sha256=rec.sha256))
+    return inputs
+
+
+def _stage_plan(eid: str, rec: StageRecord, registry: Registry, warnings: list[str]) -> StagePlan:
+    """The installed stage a record names, with its recorded params; a version change is a warning."""
+    try:
+        spec = registry.get(rec.uses)
+    except PluginError as exc:
+        raise GdtError(f"epoch {eid} was made with stage {rec.uses!r} ({rec.plugin} {rec.plugin_version}), which "
+                       f"is not installed: {exc}") from exc
+    if (spec.plugin_version, spec.version) != (rec.plugin_version, rec.version):
+        warnings.append(f"epoch {eid}: stage {spec.name!r} was made with {rec.plugin} {rec.plugin_version} (stage "
+                        f"{rec.version}); installed is {spec.plugin} {spec.plugin_version} (stage {spec.version})")
+    try:
+        params = spec.params.model_validate(rec.params)
+    except ValidationError as exc:
+        raise GdtError(f"epoch {eid}: the recorded params of stage {spec.name!r} no longer validate against the "
+                       f"installed version: {exc.errors(include_url=False)}") from exc
+    return StagePlan(index=rec.index, spec=spec, params=params, id=rec.id)
+
+
 def plan_from_twin(store: TwinStore, registry: Registry, upto: str, *, base_dir: Path | None = None
                    ) -> tuple[RunPlan, list[str], dict[str, list[str]]]:
     """The run plan recorded in a twin's provenance up to epoch ``upto``; version warnings; input problems."""
@@ -140,48 +174,22 @@ def plan_from_twin(store: TwinStore, registry: Registry, upto: str, *, base_dir:
     warnings: list[str] = []
     problems: dict[str, list[str]] = {}
     plans: list[EpochPlan] = []
-    first = store.provenance(epochs[0])
-    wf = first.get("workflow", {})
-    if "dir_from_twin" not in wf and base_dir is None:
+    first = EpochProvenance.from_dict(store.provenance(epochs[0]))
+    wf = first.workflow
+    if wf.dir_from_twin is None and base_dir is None:
         raise GdtError(f"{store.path}: its provenance does not say where the inputs were (made by an older gdt); "
                        f"pass --inputs-dir")
-    base = (base_dir or (store.path / wf["dir_from_twin"])).resolve()
+    base = (base_dir or (store.path / wf.dir_from_twin)).resolve()
     for eid in epochs[: epochs.index(upto) + 1]:
-        prov = store.provenance(eid)
-        inputs = []
-        for rec in prov.get("inputs", []):
-            path = base / rec["path"]
-            if not path.is_file():
-                problems.setdefault(eid, []).append(f"input {rec['path']} is missing (looked at {path}; recorded "
-                                                    f"sha256 {rec['sha256'][:16]}...)")
-            elif sha256_file(path) != rec["sha256"]:
-                problems.setdefault(eid, []).append(f"input {rec['path']} has changed: sha256 {sha256_file(path)} "
-                                                    f"is not the recorded {rec['sha256']}")
-            inputs.append(InputPlan(path=path, name=rec["name"], kind=rec.get("kind_hint"), reader=rec.get("reader"),
-                                    units=rec.get("units", wf.get("units", "m")), viewpoints=rec.get("viewpoints"),
-                                    sha256=rec["sha256"]))
-        stages = []
-        for rec in prov.get("stages", []):
-            try:
-                spec = registry.get(rec["uses"])
-            except PluginError as exc:
-                raise GdtError(f"epoch {eid} was made with stage {rec['uses']!r} ({rec.get('plugin')} "
-                               f"{rec.get('plugin_version')}), which is not installed: {exc}") from exc
-            if (spec.plugin_version, spec.version) != (rec.get("plugin_version"), rec.get("version")):
-                warnings.append(f"epoch {eid}: stage {spec.name!r} was made with {rec.get('plugin')} "
-                                f"{rec.get('plugin_version')} (stage {rec.get('version')}); installed is {spec.plugin} "
-                                f"{spec.plugin_version} (stage {spec.version})")
-            try:
-                params = spec.params.model_validate(rec.get("params", {}))
-            except ValidationError as exc:
-                raise GdtError(f"epoch {eid}: the recorded params of stage {spec.name!r} no longer validate against "
-                               f"the installed version: {exc.errors(include_url=False)}") from exc
-            stages.append(StagePlan(index=rec["index"], spec=spec, params=params, id=rec.get("id")))
-        e = prov["epoch"]
-        plans.append(EpochPlan(id=eid, index=e["index"], role=e["role"], inputs=inputs, stages=stages))
-    plan = RunPlan(name=wf.get("name", "audit"), workflow_path=base / wf.get("path", "workflow.yaml"),
-                   workflow_sha256=wf.get("sha256", ""), base_dir=base, seed=int(first.get("seed", 0)),
-                   units=wf.get("units", "m"), up_axis=wf.get("up_axis", "Z"), epochs=plans)
+        prov = EpochProvenance.from_dict(store.provenance(eid))
+        found: list[str] = []
+        inputs = _input_plans(prov, base, found)
+        if found:
+            problems[eid] = found
+        stages = [_stage_plan(eid, rec, registry, warnings) for rec in prov.stages]
+        plans.append(EpochPlan(id=eid, index=prov.epoch.index, role=prov.epoch.role, inputs=inputs, stages=stages))
+    plan = RunPlan(name=wf.name, workflow_path=base / wf.path, workflow_sha256=wf.sha256, base_dir=base,
+                   seed=int(first.seed), units=wf.units, up_axis=wf.up_axis, epochs=plans)
     return plan, warnings, problems
 
 
@@ -218,8 +226,8 @@ def audit_twin(twin: str | Path, *, epoch: str | None = None, strict: bool = Fal
             assert rerun_store is not None
             diffs, exact = compare_element_sets(store.read_epoch(eid), rerun_store.read_epoch(eid), rtol=rtol,
                                                 atol=atol)
-            keys_a = [s["cache_key"] for s in store.provenance(eid).get("stages", [])]
-            keys_b = [s["cache_key"] for s in rerun_store.provenance(eid).get("stages", [])]
+            keys_a = [s.cache_key for s in EpochProvenance.from_dict(store.provenance(eid)).stages]
+            keys_b = [s.cache_key for s in EpochProvenance.from_dict(rerun_store.provenance(eid)).stages]
             report.epochs.append(EpochAudit(eid, "match" if not diffs else "differs", exact=exact,
                                             cache_keys_match=keys_a == keys_b, differences=diffs))
     return report

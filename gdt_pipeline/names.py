@@ -6,8 +6,12 @@ in ``gdt_pipeline.types`` are built from those tables.
 
 from __future__ import annotations
 
+from typing import Literal
+
 # Length units a workflow or an input may declare, in metres.
 UNITS: dict[str, float] = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "um": 1e-6, "in": 0.0254, "ft": 0.3048}
+# The same names as a type, for pydantic models (workflow inputs, sensor profiles).
+Units = Literal[tuple(UNITS)]
 
 
 def identifier(stem: str) -> str:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import yaml
@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .errors import GdtError
 from .names import UNITS as UNITS_M
+from .names import Units
 from .types import Dataset
 
 
@@ -31,7 +32,7 @@ class SensorProfile(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str
     description: str = ""
-    units: Literal["m", "dm", "cm", "mm", "um", "in", "ft"] = "m"
+    units: Units = "m"
     range_sigma: list[float] = Field(min_length=3, max_length=3,
                                      description="a0, a1, a2 of σ_range = a0 + a1·r + a2·r² (profile units)")
     lateral_sigma: list[float] = Field(min_length=2, max_length=2, description="b0, b1 of σ_lateral = b0 + b1·r")

@@ -14,7 +14,7 @@ import pytest
 from pydantic import BaseModel
 
 from gdt_pipeline import PluginError, StageSpec, hookimpl
-from gdt_pipeline import plugins as plugins_mod
+from gdt_pipeline.plugins import registry as plugins_mod
 from gdt_pipeline.plugins import FAMILIES, load_registry
 
 from .conftest import REPO, run_gdt
@@ -25,11 +25,13 @@ BUILTIN_ENTRY_POINTS = {"io", "registration", "uncertainty", "correspondence", "
 def test_builtins_come_through_entry_points(registry) -> None:
     eps = {ep.name: ep for ep in im.entry_points(group="gdt_pipeline")}
     assert set(eps) >= BUILTIN_ENTRY_POINTS
-    for name in ("trimesh_mesh", "open3d_points", "identity", "constant", "nearest", "bhattacharyya", "fixed",
-                 "keep_unchanged"):
+    for name in ("identity", "constant", "nearest", "bhattacharyya", "fixed", "keep_unchanged"):
         spec = registry.get(name)
         assert spec.plugin == "gdt-pipeline" and spec.entry_point in BUILTIN_ENTRY_POINTS
         assert issubclass(spec.params, BaseModel) and spec.family in FAMILIES and spec.version
+    for name in ("trimesh_mesh", "open3d_points", "laspy_points"):  # readers: their own hook, same entry points
+        reader = registry.reader(name)
+        assert reader.plugin == "gdt-pipeline" and reader.entry_point == "io" and reader.extensions
 
 
 def test_sample_plugin_is_discovered_through_its_entry_point(registry) -> None:

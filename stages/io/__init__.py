@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from gdt_pipeline import Dataset, InputError, StageContext, StageSpec, hookimpl
+from gdt_pipeline import Dataset, InputError, ReaderSpec, ReadRequest, hookimpl
 
 VERSION = "1.0.0"
 _FACE_RE = re.compile(rb"^element\s+face\s+(\d+)", re.MULTILINE)
@@ -47,18 +46,17 @@ def _accepts_mesh(path: Path, kind: str | None) -> bool:
     return True
 
 
-def _read_mesh(ctx: StageContext) -> dict[str, Any]:
+def _read_mesh(req: ReadRequest) -> Dataset:
     import trimesh
 
-    req = ctx["request"]
     try:
-        mesh = trimesh.load(str(req.path), force="mesh", process=ctx.params.process)
+        mesh = trimesh.load(str(req.path), force="mesh", process=req.params.process)
     except Exception as exc:
         raise InputError(f"{req.path}: cannot read as a mesh ({type(exc).__name__}: {exc})") from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(f"{req.path}: no triangles found (is it a mesh? set `kind: points` for a point cloud)")
-    return {"dataset": Dataset(name=req.name, role=req.role, points=np.asarray(mesh.vertices, dtype=np.float64),
-                               faces=np.asarray(mesh.faces, dtype=np.int64))}
+    return Dataset(name=req.name, role=req.role, points=np.asarray(mesh.vertices, dtype=np.float64),
+                   faces=np.asarray(mesh.faces, dtype=np.int64))
 
 
 class PointsParams(BaseModel):
@@ -75,17 +73,16 @@ def _accepts_points(path: Path, kind: str | None) -> bool:
     return True
 
 
-def _read_points(ctx: StageContext) -> dict[str, Any]:
+def _read_points(req: ReadRequest) -> Dataset:
     import open3d as o3d
 
-    req = ctx["request"]
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     # NaN points are kept on purpose so that the engine reports them instead of silently dropping data.
     pcd = o3d.io.read_point_cloud(str(req.path), remove_nan_points=False, remove_infinite_points=False)
     pts = np.asarray(pcd.points, dtype=np.float64)
     if len(pts) == 0:
         raise InputError(f"{req.path}: no points read (the file is empty, truncated or not a point cloud)")
-    return {"dataset": Dataset(name=req.name, role=req.role, points=pts)}
+    return Dataset(name=req.name, role=req.role, points=pts)
 
 
 class LasParams(BaseModel):
@@ -95,33 +92,31 @@ class LasParams(BaseModel):
     classes: list[int] | None = Field(None, description="Keep only points of these ASPRS classes (e.g. [2] ground).")
 
 
-def _read_las(ctx: StageContext) -> dict[str, Any]:
+def _read_las(req: ReadRequest) -> Dataset:
     import laspy
 
-    req = ctx["request"]
     try:
         las = laspy.read(str(req.path))
     except Exception as exc:
         raise InputError(f"{req.path}: cannot read LAS/LAZ ({type(exc).__name__}: {exc})") from exc
     pts = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64)
-    if ctx.params.classes is not None:
-        pts = pts[np.isin(np.asarray(las.classification), ctx.params.classes)]
+    if req.params.classes is not None:
+        pts = pts[np.isin(np.asarray(las.classification), req.params.classes)]
     if len(pts) == 0:
-        raise InputError(f"{req.path}: no points (after the class filter {ctx.params.classes})")
-    return {"dataset": Dataset(name=req.name, role=req.role, points=pts)}
+        raise InputError(f"{req.path}: no points (after the class filter {req.params.classes})")
+    return Dataset(name=req.name, role=req.role, points=pts)
 
 
 @hookimpl
-def gdt_stages() -> list[StageSpec]:
+def gdt_readers() -> list[ReaderSpec]:
     """The built-in readers."""
-    common = {"family": "reader", "version": VERSION, "requires": ("request",), "provides": ("dataset",)}
     return [
-        StageSpec(name="trimesh_mesh", params=MeshParams, run=_read_mesh, accepts=_accepts_mesh,
-                  extensions=(".obj", ".ply", ".stl", ".off", ".glb", ".gltf"),
-                  description="Triangle meshes through trimesh (faces are the elements).", **common),
-        StageSpec(name="open3d_points", params=PointsParams, run=_read_points, accepts=_accepts_points,
-                  extensions=(".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts"),
-                  description="Point clouds through Open3D.", **common),
-        StageSpec(name="laspy_points", params=LasParams, run=_read_las, extensions=(".las", ".laz"),
-                  description="LAS/LAZ LiDAR point clouds through laspy (lazrs backend).", **common),
+        ReaderSpec(name="trimesh_mesh", version=VERSION, params=MeshParams, read=_read_mesh, accepts=_accepts_mesh,
+                   extensions=(".obj", ".ply", ".stl", ".off", ".glb", ".gltf"),
+                   description="Triangle meshes through trimesh (faces are the elements)."),
+        ReaderSpec(name="open3d_points", version=VERSION, params=PointsParams, read=_read_points,
+                   accepts=_accepts_points, extensions=(".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts"),
+                   description="Point clouds through Open3D."),
+        ReaderSpec(name="laspy_points", version=VERSION, params=LasParams, read=_read_las, extensions=(".las", ".laz"),
+                   description="LAS/LAZ LiDAR point clouds through laspy (lazrs backend)."),
     ]

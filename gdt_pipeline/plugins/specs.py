@@ -1,0 +1,175 @@
+"""Plugin system: pluggy hookspecs and the records every plugin returns.
+
+Every stage, built-in or third-party, arrives the same way: a module listed under the ``gdt_pipeline`` entry-point
+group implements the ``gdt_stages`` hook and returns :class:`StageSpec` records; file readers are their own
+extension kind, returned by the ``gdt_readers`` hook as :class:`ReaderSpec` records. The engine never imports a
+stage by name. A hook implementation whose name matches no hook (a misspelt ``gdt_stage``) is an error naming the
+plugin, not a plugin that silently provides nothing.
+
+This module holds what a plugin sees: the hook markers, the records (:class:`StageSpec`, :class:`ReaderSpec`), the
+context a stage runs in. ``registry`` discovers the plugins.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import re
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol, get_args
+
+import numpy as np
+import pluggy
+from pydantic import BaseModel
+
+from ..errors import PluginError
+from ..types import Dataset, EpochInfo
+
+PROJECT = "gdt_pipeline"
+ENTRY_POINT_GROUP = "gdt_pipeline"
+BLOCK_ENV = "GDT_BLOCKED_PLUGINS"
+
+hookspec = pluggy.HookspecMarker(PROJECT)
+hookimpl = pluggy.HookimplMarker(PROJECT)
+
+Family = Literal["registrar", "uncertainty", "rov", "correspondence", "distance", "threshold", "fusion"]
+FAMILIES: tuple[str, ...] = get_args(Family)
+NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
+
+log = logging.getLogger("gdt.plugins")
+
+
+class ProgressTask(Protocol):
+    """Advance callback of a progress task."""
+
+    def __call__(self, advance: float = 1.0) -> None:
+        """Advance the task by ``advance`` units."""
+
+
+class Progress(Protocol):
+    """What a stage uses to report progress on long work; the runner shows it, tests ignore it."""
+
+    def task(self, description: str, total: float) -> contextlib.AbstractContextManager[ProgressTask]:
+        """A progress task of ``total`` units, advanced through the callback the context yields."""
+
+
+class NullProgress:
+    """Progress that shows nothing (tests, library use, ``--quiet``)."""
+
+    @contextlib.contextmanager
+    def task(self, description: str, total: float) -> Iterator[ProgressTask]:
+        """Yield a callback that does nothing."""
+        yield lambda advance=1.0: None
+
+
+@dataclass(frozen=True)
+class StageContext:
+    """What a stage's ``run`` receives: its validated params, the slots it declared, a seeded rng, and services."""
+
+    stage: StageSpec
+    params: Any
+    slots: Mapping[str, Any]
+    epoch: EpochInfo
+    rng: np.random.Generator
+    seed: int
+    log: logging.Logger
+    progress: Progress = field(default_factory=NullProgress)
+    notes: dict[str, Any] = field(default_factory=dict)
+
+    def report(self, **values: Any) -> None:
+        """Record figures worth keeping (a tolerance reached, a rate achieved): they go into the epoch's provenance."""
+        self.notes.update(values)
+
+    def __getitem__(self, name: str) -> Any:
+        """The value of a required slot."""
+        try:
+            return self.slots[name]
+        except KeyError:
+            st = self.stage
+            raise PluginError(f"stage {st.name!r} asked for slot {name!r}, which it did not declare "
+                              f"(requires: {list(st.requires)}, optional: {list(st.optional)})") from None
+
+    def get(self, name: str, default: Any = None) -> Any:
+        """The value of an optional slot, or ``default`` when no earlier stage provided it."""
+        return self.slots.get(name, default)
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """A stage as a plugin declares it.
+
+    ``run(ctx)`` returns a mapping with exactly the ``provides`` slots. ``requires`` must be present before the stage
+    runs (checked when the workflow is loaded); ``optional`` slots are handed over when present. ``check`` may add a
+    static rule about the slots available (return a message to reject).
+    """
+
+    name: str
+    family: Family
+    version: str
+    params: type[BaseModel]
+    run: Callable[[StageContext], Mapping[str, Any]]
+    requires: tuple[str, ...] = ()
+    provides: tuple[str, ...] = ()
+    optional: tuple[str, ...] = ()
+    description: str = ""
+    check: Callable[[frozenset[str]], str | None] | None = None
+    plugin: str = ""
+    plugin_version: str = ""
+    entry_point: str = ""
+
+
+@dataclass(frozen=True)
+class ReadRequest:
+    """What a reader is asked to read: one input of an epoch, with the reader's validated params."""
+
+    path: Path
+    name: str
+    role: str
+    kind: str | None
+    sha256: str
+    params: Any = None
+
+
+@dataclass(frozen=True)
+class ReaderSpec:
+    """A file reader as a plugin declares it (hook ``gdt_readers``).
+
+    Readers are not chained: the engine picks one per input by ``extensions`` and ``accepts(path, kind)`` (or the
+    input's ``reader:``) and calls ``read(request)``, which returns a :class:`~gdt_pipeline.types.Dataset`. The
+    engine then checks the geometry and applies the unit scale.
+    """
+
+    name: str
+    version: str
+    extensions: tuple[str, ...]
+    read: Callable[[ReadRequest], Dataset]
+    params: type[BaseModel] = BaseModel
+    accepts: Callable[[Path, str | None], bool] | None = None
+    description: str = ""
+    plugin: str = ""
+    plugin_version: str = ""
+    entry_point: str = ""
+
+    # A reader is listed beside the stages (``gdt plugins``) with the same columns.
+    family = "reader"
+    requires: tuple[str, ...] = ()
+    provides: tuple[str, ...] = ("dataset",)
+    optional: tuple[str, ...] = ()
+
+
+class GdtSpecs:
+    """Hook specifications of gdt-pipeline."""
+
+    @hookspec
+    def gdt_stages(self) -> Sequence[StageSpec]:
+        """Return the stages this plugin provides."""
+        raise NotImplementedError
+
+    @hookspec
+    def gdt_readers(self) -> Sequence[ReaderSpec]:
+        """Return the file readers this plugin provides."""
+        raise NotImplementedError
+
+

@@ -1,0 +1,20 @@
+"""The runner: plans from workflow files (or from a twin's provenance), reading inputs, running the chain epoch by
+epoch and writing the twin (see ``execute`` for reproducibility, traceability and safety)."""
+
+from ..provenance import cache_key, package_versions
+from .execute import (
+    LOCK_NAME,
+    EpochSummary,
+    Reporter,
+    RunResult,
+    execute_plan,
+    run_stage,
+    run_workflow,
+    stage_rng,
+)
+from .inputs import check_dataset, read_dataset, read_input, sha256_file
+from .plan import EpochPlan, InputPlan, RunPlan, StagePlan, plan_from_workflow
+
+__all__ = ["LOCK_NAME", "EpochPlan", "EpochSummary", "InputPlan", "Reporter", "RunPlan", "RunResult", "StagePlan",
+           "cache_key", "check_dataset", "execute_plan", "package_versions", "plan_from_workflow", "read_dataset",
+           "read_input", "run_stage", "run_workflow", "sha256_file", "stage_rng"]

@@ -1,0 +1,281 @@
+"""Running a plan: each epoch's inputs read, the chain run over a shared context, the composite written to the twin.
+
+Reproducibility: every stage gets a numpy Generator from ``SeedSequence(workflow seed, spawn_key=(epoch, stage))``,
+so the same workflow and inputs give the same twin whatever else runs. Traceability: every stage gets a cache key,
+the sha256 of its plugin, name and version, validated params, the epoch's input digests and the keys upstream of it;
+the keys and everything else needed to re-run an epoch go into the epoch's provenance and into ``gdt.lock``.
+
+Safety: the twin is built in a temporary folder beside the target and moved into place only when every epoch has
+been written, so a failure or an interrupt leaves an existing twin exactly as it was and no half-written one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import platform
+import shutil
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twin_store import TwinStore, TwinStoreError, writer_lock
+
+from ..errors import GdtError, StageError
+from ..names import UNITS
+from ..plugins import NullProgress, Progress, Registry, StageContext, StageSpec, load_registry
+from ..provenance import (
+    EpochProvenance,
+    EpochRecord,
+    InputRecord,
+    StageRecord,
+    WorkflowRecord,
+    cache_key,
+    package_versions,
+)
+from ..slots import valid
+from ..twin import composite_to_elements
+from ..types import Composite, Dataset, EpochInfo, Registration
+from ..workflow import load_workflow
+from .inputs import input_digests, read_input, relative_to_workflow
+from .plan import EpochPlan, RunPlan, StagePlan, plan_from_workflow
+from .staging import remove_stale_staging, staging_path, swap_into_place, write_json_atomic
+
+log = logging.getLogger("gdt.run")
+
+LOCK_NAME = "gdt.lock"
+
+
+@dataclass
+class EpochSummary:
+    """What one epoch produced, for the CLI and for tests."""
+
+    id: str
+    counts: dict[str, int]
+    seconds: float
+    layer: Path
+
+
+@dataclass
+class RunResult:
+    """Where the run wrote its twin, and a summary per epoch."""
+
+    twin: Path
+    lock: Path
+    epochs: list[EpochSummary] = field(default_factory=list)
+
+
+class Reporter:
+    """Hooks the CLI uses to show progress; the default shows nothing."""
+
+    progress: Progress = NullProgress()
+
+    def epoch_started(self, epoch: EpochPlan, index: int, total: int) -> None:
+        """An epoch begins."""
+
+    def stage_started(self, epoch: EpochPlan, index: int, spec: StageSpec) -> None:
+        """A stage begins."""
+
+    def stage_finished(self, epoch: EpochPlan, index: int, spec: StageSpec, seconds: float) -> None:
+        """A stage ended."""
+
+    def epoch_finished(self, summary: EpochSummary) -> None:
+        """An epoch was written."""
+
+
+@dataclass(frozen=True)
+class _RunContext:
+    """What every epoch of one run shares."""
+
+    plan: RunPlan
+    registry: Registry
+    reporter: Reporter
+    digests: dict[tuple[int, int], str]
+    packages: dict[str, str]
+    workflow: WorkflowRecord
+
+
+def run_stage(spec: StageSpec, ctx: StageContext, where: str) -> dict[str, Any]:
+    """Run one stage and check that it returned exactly the slots it declares, each of the right type."""
+    try:
+        out = spec.run(ctx)
+    except GdtError as exc:
+        raise type(exc)(f"{where}: {exc}") from exc
+    except (KeyboardInterrupt, MemoryError):
+        raise
+    except Exception as exc:
+        raise StageError(f"{where} failed: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(out, Mapping):
+        raise StageError(f"{where} returned {type(out).__name__}, not a mapping of slots")
+    got, want = set(out), set(spec.provides)
+    if got != want:
+        raise StageError(f"{where} broke its contract: it declares {sorted(want)} but returned {sorted(got)}")
+    for slot, value in out.items():
+        if not valid(slot, value):
+            raise StageError(f"{where} returned a {type(value).__name__} for slot {slot!r}")
+    return dict(out)
+
+
+def stage_rng(seed: int, epoch_index: int, stage_index: int) -> tuple[np.random.Generator, int]:
+    """The stage's own generator and its integer seed, from the workflow seed and the stage's place."""
+    ss = np.random.SeedSequence(seed, spawn_key=(epoch_index, stage_index))
+    return np.random.default_rng(ss), int(ss.generate_state(1, dtype=np.uint32)[0])
+
+
+def run_workflow(path: str | Path, *, registry: Registry | None = None, twin: str | Path | None = None,
+                 overwrite: bool = False, reporter: Reporter | None = None) -> RunResult:
+    """Run a workflow file end to end and write its twin; return where it went."""
+    registry = registry or load_registry()
+    wf = load_workflow(path, registry)
+    target = Path(twin).resolve() if twin is not None else wf.twin_path()
+    return execute_plan(plan_from_workflow(wf, registry), registry, target, overwrite=overwrite, reporter=reporter)
+
+
+def execute_plan(plan: RunPlan, registry: Registry, target: Path, *, overwrite: bool = False,
+                 reporter: Reporter | None = None) -> RunResult:
+    """Run a plan into the twin at ``target``, holding the twin's writer lock."""
+    reporter = reporter or Reporter()
+    target = Path(target).resolve()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with writer_lock(target):
+            return _run_locked(plan, registry, reporter, target, overwrite)
+    except TwinStoreError as exc:
+        raise GdtError(str(exc)) from exc
+
+
+def _check_target(target: Path, overwrite: bool) -> None:
+    remove_stale_staging(target)
+    if target.exists() and not overwrite:
+        raise GdtError(f"twin {target} already exists; pass --overwrite to replace it (the old twin stays intact "
+                       f"until the new one is complete)")
+    if target.exists() and not (target / "twin.usda").is_file():
+        raise GdtError(f"{target} exists and is not a twin (no twin.usda); refusing to replace it")
+
+
+def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: Path,
+                overwrite: bool) -> RunResult:
+    _check_target(target, overwrite)
+    run = _RunContext(plan, registry, reporter, input_digests(plan), package_versions(),
+                      WorkflowRecord(path=relative_to_workflow(plan.workflow_path, plan.base_dir),
+                                     sha256=plan.workflow_sha256, name=plan.name,
+                                     dir_from_twin=os.path.relpath(plan.base_dir, target), units=plan.units,
+                                     up_axis=plan.up_axis))
+    staging = staging_path(target)
+    if staging.exists():
+        shutil.rmtree(staging)
+    lock: dict[str, Any] = {"format": 1, "workflow": dataclasses.asdict(run.workflow), "seed": plan.seed,
+                            "packages": run.packages, "epochs": []}
+    result = RunResult(twin=target, lock=target / LOCK_NAME)
+    try:
+        store = TwinStore.create(staging, meters_per_unit=UNITS[plan.units], up_axis=plan.up_axis, lock=False)
+        composite: Composite | None = None
+        epoch_key: str | None = None
+        for epoch in plan.epochs:
+            t_epoch = time.perf_counter()
+            prov, slots = _run_epoch(run, epoch, composite, epoch_key)
+            composite, epoch_key = slots["composite"], prov.epoch_key
+            summary = _write_epoch(store, prov, slots, target, time.perf_counter() - t_epoch)
+            result.epochs.append(summary)
+            reporter.epoch_finished(summary)
+            lock["epochs"].append(prov.lock_entry())
+        write_json_atomic(staging / LOCK_NAME, lock)
+        swap_into_place(staging, target)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return result
+
+
+def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, epoch_key: str | None
+               ) -> tuple[EpochProvenance, dict[str, Any]]:
+    """Read the epoch's inputs and run its chain; its provenance and the slots the chain left."""
+    plan = run.plan
+    started = datetime.now(UTC).isoformat(timespec="seconds")
+    run.reporter.epoch_started(epoch, epoch.index, len(plan.epochs))
+    info = EpochInfo(id=epoch.id, index=epoch.index, role=epoch.role, seed=plan.seed, workflow_dir=plan.base_dir,
+                     units=plan.units)
+    digests = [run.digests[(epoch.index, i)] for i in range(len(epoch.inputs))]
+    recent = [read_input(plan, run.registry, epoch, i, digests[i]) for i in range(len(epoch.inputs))]
+    slots: dict[str, Any] = {"recent": recent, "epoch": info}
+    if composite is not None:
+        slots["reference"] = composite
+    upstream = [epoch_key] if epoch_key else []
+    records = [_run_chain_stage(run, epoch, stage, info, slots, digests, upstream) for stage in epoch.stages]
+    prov = EpochProvenance(
+        gdt_pipeline=run.packages.get("gdt-pipeline", "?"), workflow=run.workflow,
+        epoch=EpochRecord(epoch.id, epoch.index, epoch.role), seed=plan.seed,
+        inputs=[_input_record(ds, inp.kind, inp.viewpoints) for ds, inp in zip(recent, epoch.inputs, strict=True)
+                if ds.source is not None],
+        stages=records, registration=_registration_record(slots.get("registration")), packages=run.packages,
+        python=platform.python_version(), started=started, finished=datetime.now(UTC).isoformat(timespec="seconds"),
+        counts=slots["composite"].counts(), epoch_key=upstream[-1] if upstream else None)
+    return prov, slots
+
+
+def _run_chain_stage(run: _RunContext, epoch: EpochPlan, stage: StagePlan, info: EpochInfo, slots: dict[str, Any],
+                     digests: list[str], upstream: list[str]) -> StageRecord:
+    """Run one stage of the chain on the epoch's slots (updated in place); append its cache key to ``upstream``."""
+    spec, s_index = stage.spec, stage.index
+    params = json.loads(stage.params.model_dump_json())
+    rng, seed = stage_rng(run.plan.seed, epoch.index, s_index)
+    key = cache_key(spec, params, digests, upstream)
+    where = f"epoch {epoch.id}, stage {s_index} {spec.name!r} ({spec.plugin} {spec.plugin_version})"
+    visible = {k: v for k, v in slots.items() if k in spec.requires or k in spec.optional or k == "epoch"}
+    ctx = StageContext(stage=spec, params=stage.params, slots=visible, epoch=info, rng=rng, seed=seed,
+                       log=logging.getLogger(f"gdt.stage.{spec.name}"), progress=run.reporter.progress)
+    run.reporter.stage_started(epoch, s_index, spec)
+    t0 = time.perf_counter()
+    slots.update(run_stage(spec, ctx, where))
+    dt = time.perf_counter() - t0
+    run.reporter.stage_finished(epoch, s_index, spec, dt)
+    log.info("stage done", extra={"event": {"epoch": epoch.id, "stage": spec.name, "index": s_index,
+                                            "seconds": round(dt, 4), "cache_key": key}})
+    upstream.append(key)
+    return StageRecord(index=s_index, id=stage.id, uses=spec.name, family=spec.family, version=spec.version,
+                       plugin=spec.plugin, plugin_version=spec.plugin_version, entry_point=spec.entry_point,
+                       params=params, seed_spawn_key=[epoch.index, s_index], seed=seed,
+                       requires=list(spec.requires), provides=list(spec.provides), cache_key=key,
+                       seconds=round(dt, 4), report=json.loads(json.dumps(ctx.notes, default=_plain)))
+
+
+def _write_epoch(store: TwinStore, prov: EpochProvenance, slots: dict[str, Any], target: Path, seconds: float
+                 ) -> EpochSummary:
+    """Write the epoch's layer: the composite's elements, its provenance, region of view and segments."""
+    composite: Composite = slots["composite"]
+    rov = slots.get("rov")
+    segments = [dataclasses.asdict(g) for g in composite.segments]
+    layer = store.write_epoch(prov.epoch.id, composite_to_elements(composite), prov.to_dict(),
+                              None if rov is None else (rov.vertices, rov.faces), segments)
+    return EpochSummary(prov.epoch.id, composite.counts(), seconds, target / "epochs" / Path(layer).name)
+
+
+def _input_record(ds: Dataset, kind_hint: str | None, viewpoints: list | None) -> InputRecord:
+    src = ds.source
+    return InputRecord(path=src.path, sha256=src.sha256, name=ds.name, kind=ds.kind, kind_hint=kind_hint,
+                       reader=src.reader, units=src.units, scale=src.scale, viewpoints=viewpoints,
+                       elements=ds.n_elements)
+
+
+def _plain(value: Any) -> Any:
+    """JSON form of numpy scalars and arrays in stage reports."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
+
+
+def _registration_record(reg: Registration | None) -> dict[str, Any] | None:
+    if reg is None:
+        return None
+    return {"method": reg.method, "transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse,
+            "covariance": None if reg.covariance is None else reg.covariance.tolist(),
+            "covariance_center": reg.center.tolist()}

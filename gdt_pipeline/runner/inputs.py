@@ -1,0 +1,96 @@
+"""Reading an epoch's inputs: the reader each file selects, checks that the geometry is usable, the unit scale."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GdtError, InputError, StageError
+from ..names import UNITS
+from ..plugins import ReaderSpec, ReadRequest, Registry
+from ..types import Dataset, SourceInfo
+from .plan import EpochPlan, RunPlan
+
+
+def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    """sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def relative_to_workflow(path: Path, base: Path) -> str:
+    """A path relative to the workflow folder when below it (host-independent provenance), else absolute."""
+    try:
+        return path.resolve().relative_to(base.resolve()).as_posix()
+    except ValueError:
+        return str(path.resolve())
+
+
+def check_dataset(ds: Dataset, where: str) -> None:
+    """Refuse an empty dataset or one with non-finite coordinates, naming the rows."""
+    if ds.n_elements == 0 or len(ds.points) == 0:
+        raise InputError(f"{where}: the {'mesh has no faces' if ds.faces is not None else 'point cloud is empty'}")
+    bad = ~np.isfinite(ds.points).all(axis=1)
+    if bad.any():
+        first = np.flatnonzero(bad)[:5].tolist()
+        raise InputError(f"{where}: {int(bad.sum())} of {len(ds.points)} coordinates are NaN or infinite "
+                         f"(first rows {first}); clean the file or remove those points")
+
+
+def _select_reader(path: Path, registry: Registry, kind: str | None, reader: str | None, where: str) -> ReaderSpec:
+    if reader:
+        return registry.reader(reader)
+    cands = registry.readers_for(path, kind)
+    if not cands:
+        raise InputError(f"{where}: no installed reader accepts this file")
+    return cands[0]
+
+
+def read_dataset(path: Path, registry: Registry, *, name: str, role: str = "as-is", kind: str | None = None,
+                 reader: str | None = None, digest: str = "", where: str | None = None) -> Dataset:
+    """Read one file with the reader its extension (or ``reader``) selects, and check the geometry is usable."""
+    where = where or str(path)
+    spec = _select_reader(path, registry, kind, reader, where)
+    request = ReadRequest(path, name, role, kind, digest, params=spec.params())
+    try:
+        ds = spec.read(request)
+    except GdtError as exc:
+        raise InputError(f"{where}: {exc}") from exc
+    except Exception as exc:
+        raise InputError(f"{where}: reader {spec.name!r} failed: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(ds, Dataset):
+        raise StageError(f"{where}: reader {spec.name!r} returned {type(ds).__name__}, not a Dataset")
+    check_dataset(ds, where)
+    return dataclasses.replace(ds, source=SourceInfo(path=str(path), sha256=digest, reader=spec.name))
+
+
+def read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int, digest: str) -> Dataset:
+    """Input ``i_index`` of an epoch, read, checked and scaled to the twin's units."""
+    inp = epoch.inputs[i_index]
+    ds = read_dataset(inp.path, registry, name=inp.name, role=epoch.role, kind=inp.kind, reader=inp.reader,
+                      digest=digest, where=f"epoch {epoch.id}, input {i_index} ({inp.path})")
+    scale = UNITS[inp.units] / UNITS[plan.units]
+    vps = None if inp.viewpoints is None else np.asarray(inp.viewpoints, dtype=np.float64) * scale
+    return dataclasses.replace(
+        ds, points=ds.points * scale if scale != 1.0 else ds.points, viewpoints=vps,
+        source=SourceInfo(path=relative_to_workflow(inp.path, plan.base_dir), sha256=digest, units=inp.units,
+                          scale=scale, reader=ds.source.reader if ds.source else ""))
+
+
+def input_digests(plan: RunPlan) -> dict[tuple[int, int], str]:
+    """sha256 of every input, by (epoch index, input index), read before anything runs."""
+    digests: dict[tuple[int, int], str] = {}
+    for epoch in plan.epochs:
+        for i_index, inp in enumerate(epoch.inputs):
+            try:
+                digests[(epoch.index, i_index)] = sha256_file(inp.path)
+            except OSError as exc:
+                raise InputError(f"epoch {epoch.id}, input {i_index} ({inp.path}): cannot read: "
+                                 f"{exc.strerror}") from exc
+    return digests

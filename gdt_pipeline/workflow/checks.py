@@ -1,0 +1,171 @@
+"""Workflow checks: pydantic's errors mapped to YAML positions, the slot chain per epoch, epoch and file references."""
+
+from __future__ import annotations
+
+import difflib
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from ..plugins import Registry, unknown_name_message
+from ..slots import ENGINE_SLOTS, FINAL_SLOT
+from .marks import Problems
+from .model import EpochSpec, InputSpec, StageEntryBase, WorkflowBase
+
+
+def allowed_keys(loc: tuple, data: Any, registry: Registry) -> list[str] | None:
+    """Field names allowed at the mapping that holds the last element of ``loc``, for "did you mean"."""
+    parent = loc[:-1]
+
+    def fields(model: type[BaseModel]) -> list[str]:
+        return [f.alias or n for n, f in model.model_fields.items()]
+
+    if parent == ():
+        return [*fields(WorkflowBase), "stages"]
+    if len(parent) == 2 and parent[0] == "epochs":
+        return fields(EpochSpec)
+    if len(parent) == 4 and parent[0] == "epochs" and parent[2] == "inputs":
+        return fields(InputSpec)
+    if len(parent) == 2 and parent[0] == "stages":
+        return [*fields(StageEntryBase), "uses", "with"]
+    if len(parent) == 3 and parent[0] == "stages" and parent[2] == "with":
+        try:
+            uses = data["stages"][parent[1]]["uses"]
+            return fields(registry.get(uses).params)
+        except Exception:
+            return None
+    return None
+
+
+def strip_tags(loc: tuple, data: Any) -> tuple:
+    """Drop the discriminator tag pydantic inserts after a stage index (stages.2.fixed.with -> stages.2.with)."""
+    if len(loc) >= 3 and loc[0] == "stages" and isinstance(loc[1], int) and isinstance(loc[2], str):
+        try:
+            if data["stages"][loc[1]]["uses"] == loc[2]:
+                return loc[:2] + loc[3:]
+        except (KeyError, IndexError, TypeError):
+            pass
+    return loc
+
+
+def pydantic_problems(exc: ValidationError, data: Any, registry: Registry, problems: Problems) -> None:
+    for err in exc.errors(include_url=False):
+        loc = strip_tags(tuple(err["loc"]), data)
+        etype = err["type"]
+        if etype == "union_tag_invalid":
+            tag = err.get("ctx", {}).get("tag", "?")
+            problems.add((*loc, "uses"), unknown_name_message("stage", tag, registry.names(chain_only=True)))
+        elif etype == "union_tag_not_found":
+            problems.add(loc, "each stage needs `uses: <stage name>`")
+        elif etype == "extra_forbidden":
+            allowed = allowed_keys(loc, data, registry) or []
+            name = str(loc[-1])
+            hit = difflib.get_close_matches(name, allowed, n=1, cutoff=0.6)
+            if loc[0] == "stages" and loc[2:3] == ("with",):
+                what = f"unknown parameter {name!r} of stage {data['stages'][loc[1]]['uses']!r}"
+            else:
+                what = f"unknown key {name!r}"
+            mean = f"; did you mean {hit[0]!r}?" if hit else ""
+            problems.add(loc, f"{what}{mean} (allowed: {', '.join(allowed) or 'none'})", key=True)
+        elif etype == "missing":
+            problems.add(loc, f"missing required key {loc[-1]!r}", key=False)
+        else:
+            problems.add(loc, err["msg"])
+
+
+def slot_problems(data: dict, registry: Registry, problems: Problems) -> None:
+    """Check per epoch that every slot a stage requires is provided by the engine or an earlier stage."""
+    epochs = [e for e in data.get("epochs") or [] if isinstance(e, dict)]
+    stages = data.get("stages") or []
+    if not isinstance(stages, list) or not epochs:
+        return
+    epoch_ids = [e.get("id") for e in epochs]
+    missing: dict[tuple[int, str], list[str]] = {}
+    checks: dict[tuple[int, str], list[str]] = {}
+    no_final: list[str] = []
+    for e_index, epoch in enumerate(epochs):
+        available = set(ENGINE_SLOTS) | ({"reference"} if e_index > 0 else set())
+        for s_index, entry in enumerate(stages):
+            if not isinstance(entry, dict) or not isinstance(entry.get("uses"), str):
+                continue
+            name = entry["uses"]
+            spec = registry.get(name) if name in registry.names(chain_only=True) else registry.closest(name)
+            if spec is None:
+                continue
+            role, only = entry.get("role"), entry.get("epochs")
+            if role is not None and role != epoch.get("role"):
+                continue
+            if isinstance(only, list) and epoch.get("id") not in only:
+                continue
+            for slot in spec.requires:
+                if slot not in available:
+                    missing.setdefault((s_index, slot), []).append(str(epoch.get("id")))
+            if spec.check is not None:
+                msg = spec.check(frozenset(available))
+                if msg:
+                    checks.setdefault((s_index, msg), []).append(str(epoch.get("id")))
+            available |= set(spec.provides)
+        if FINAL_SLOT not in available:
+            no_final.append(str(epoch.get("id")))
+    for (s_index, slot), at in missing.items():
+        name = repr(stages[s_index]["uses"])
+        if stages[s_index]["uses"] not in registry:
+            spec = registry.closest(stages[s_index]["uses"])
+            name = f"{name} (read as {spec.name!r})" if spec else name
+        hint = ""
+        if slot == "reference" and epoch_ids and at[0] == epoch_ids[0]:
+            hint = " (the first epoch has no reference yet: limit the stage with `role: as-is` or `epochs: [...]`)"
+        producers = [s.name for s in registry.stages() if slot in s.provides]
+        prod = f"; stages that provide it: {', '.join(producers)}" if producers else ""
+        problems.add(("stages", s_index, "uses"),
+                     f"stage {name} requires slot {slot!r}, which no earlier stage provides "
+                     f"at epoch{'s' if len(at) > 1 else ''} {', '.join(at)}{hint}{prod}")
+    for (s_index, msg), at in checks.items():
+        problems.add(("stages", s_index, "uses"), f"{msg} (at epoch{'s' if len(at) > 1 else ''} {', '.join(at)})")
+    if no_final:
+        problems.add(("stages",), f"no stage provides {FINAL_SLOT!r} at epoch{'s' if len(no_final) > 1 else ''} "
+                                  f"{', '.join(no_final)}: end the chain with a fusion stage")
+
+
+def reference_problems(data: dict, registry: Registry, problems: Problems, base: Path) -> None:
+    """Checks that need more than the schema: epoch references, reader names, input files present."""
+    epochs = [e for e in data.get("epochs") or [] if isinstance(e, dict)]
+    ids = [e.get("id") for e in epochs]
+    for s_index, entry in enumerate(data.get("stages") or []):
+        if not isinstance(entry, dict):
+            continue
+        name = entry.get("uses")
+        if isinstance(name, str) and name in registry.names("reader"):
+            problems.add(("stages", s_index, "uses"),
+                         f"{name!r} is a reader: readers are chosen per input (set `reader:` on the input), "
+                         f"not chained under stages")
+        for j, eid in enumerate(entry.get("epochs") or []):
+            if eid not in ids:
+                problems.add(("stages", s_index, "epochs", j), unknown_name_message("epoch", str(eid), ids))
+    for e_index, epoch in enumerate(epochs):
+        for i_index, inp in enumerate(epoch.get("inputs") or []):
+            if not isinstance(inp, dict):
+                continue
+            reader = inp.get("reader")
+            if isinstance(reader, str) and reader not in registry.names("reader"):
+                problems.add(("epochs", e_index, "inputs", i_index, "reader"),
+                             unknown_name_message("reader", reader, registry.names("reader")))
+            path = inp.get("path")
+            if isinstance(path, str):
+                full = (base / path).resolve()
+                if not full.is_file():
+                    problems.add(("epochs", e_index, "inputs", i_index, "path"), f"input file not found: {full}")
+                elif reader is None and not registry.readers_for(full, inp.get("kind")):
+                    exts = sorted({x for s in registry.stages("reader") for x in s.extensions})
+                    problems.add(("epochs", e_index, "inputs", i_index, "path"),
+                                 f"no installed reader accepts {full.name!r} (extensions: {', '.join(exts)})")
+        names = [inp.get("name") or Path(str(inp.get("path", ""))).stem
+                 for inp in epoch.get("inputs") or [] if isinstance(inp, dict)]
+        dups = sorted({n for n in names if names.count(n) > 1})
+        if dups:
+            problems.add(("epochs", e_index, "inputs"),
+                         f"dataset names must be unique within an epoch; repeated: {', '.join(dups)} "
+                         f"(set `name:` on the inputs)")
+
+

@@ -12,6 +12,9 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from twin_store import STATE_NAMES
+
+from ..names import UNITS
 from .common import EXIT_ERROR, err_console, installed_registry, out_console
 
 
@@ -32,8 +35,7 @@ def open_twin(twin: Path, epoch: str | None) -> tuple[Any, str]:
 
 def counts_text(counts: dict[str, int]) -> str:
     """Elements per change state as one line: '3 unchanged, 1 new, 0 removed, 0 outside rov'."""
-    return ", ".join(f"{counts.get(k, 0)} {k.replace('_', ' ')}" for k in ("unchanged", "new", "removed",
-                                                                             "outside_rov"))
+    return ", ".join(f"{counts.get(k, 0)} {k.replace('_', ' ')}" for k in STATE_NAMES)
 
 
 @click.command("log")
@@ -89,8 +91,8 @@ def show(twin: Path, epoch: str | None, output: Path | None) -> None:
         table.add_column(col)
     for es in store.read_epoch(epoch):
         vis = es.visible.astype(bool)
-        counts = {n: int(c) for n, c in zip(("unchanged", "new", "removed", "outside_rov"),
-                                            np.bincount(es.state[vis], minlength=4), strict=True)}
+        counts = {n: int(c) for n, c in zip(STATE_NAMES, np.bincount(es.state[vis], minlength=len(STATE_NAMES)),
+                                            strict=True)}
         why = "-" if es.reason is None else ", ".join(
             f"{int(c)} {REASON_NAMES[i].replace('_', ' ') if i < len(REASON_NAMES) else f'code {i}'}"
             for i, c in enumerate(np.bincount(es.reason)) if c)
@@ -142,7 +144,7 @@ def export(twin: Path, epoch: str | None, fmt: str, output: Path) -> None:
               help="Mesh of the known object that was scanned.")
 @click.option("--scan", "scans", type=click.Path(path_type=Path, exists=True, dir_okay=False), multiple=True,
               required=True, help="A scan of it, registered to the reference (repeat for several).")
-@click.option("--units", type=click.Choice(["m", "dm", "cm", "mm", "um", "in", "ft"]), default="m",
+@click.option("--units", type=click.Choice(list(UNITS)), default="m",
               show_default=True, help="Units of the files (and of the profile written).")
 @click.option("--max-distance", type=float, help="Ignore points farther than this from the reference (strays).")
 @click.option("--name", default="calibrated", show_default=True, help="Name of the sensor profile.")

@@ -1,0 +1,120 @@
+"""``sensor_frustum``: the region of view is the union of the sensors' frusta, per recent dataset with viewpoints: a
+pinhole frustum from the scanner's pose file beside the input, else the tightest pinhole frustum around the directions
+to the dataset's own points (plus a margin)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field, PositiveFloat
+
+from gdt_pipeline import Dataset, RegionOfView, StageContext
+
+from ._look import look
+from ._occlusion import OcclusionParams
+
+
+class FrustumParams(OcclusionParams):
+    """The union of the sensors' frusta."""
+
+    fov_deg: float | None = Field(None, gt=0, lt=180, description="Horizontal field of view when no pose file says "
+                                                                  "(default: fitted to the data).")
+    aspect: PositiveFloat | None = Field(None, description="Width / height of the image when no pose file says.")
+    near: float = Field(0.05, ge=0, description="Nearest range measured (twin units).")
+    far: PositiveFloat | None = Field(None, description="Farthest range (default: the pose file's, else 1.05 × the "
+                                                        "farthest point).")
+    margin_deg: float = Field(1.0, ge=0, description="Angular margin around a frustum fitted to the data.")
+
+
+def _frame(fwd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The view axis and the right and up directions of a pinhole looking along ``fwd``."""
+    # not geometry.beam_frames: the helper axis switches at 0.95, not 0.9, and "up" is right x forward
+    fwd = fwd / np.linalg.norm(fwd)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(fwd[2]) < 0.95 else np.array([1.0, 0.0, 0.0])
+    right = np.cross(fwd, helper)
+    right /= np.linalg.norm(right)
+    return fwd, right, np.cross(right, fwd)
+
+
+def _frustum_mesh(eye: np.ndarray, fwd: np.ndarray, u: tuple[float, float], v: tuple[float, float], near: float,
+                  far: float) -> tuple[np.ndarray, np.ndarray]:
+    """A closed pinhole frustum: image-plane tangent bounds u (right) and v (up), between near and far depth."""
+    f, r, up = _frame(fwd)
+    corners = []
+    for depth in (near, far):
+        for a, b in ((u[0], v[0]), (u[1], v[0]), (u[1], v[1]), (u[0], v[1])):
+            corners.append(eye + depth * (f + a * r + b * up))
+    verts = np.array(corners)
+    faces = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5],
+                      [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+    return verts, faces
+
+
+def _pose(ds: Dataset, workflow_dir: Path) -> dict[str, Any] | None:
+    """The scanner's pose file beside the dataset's input (``<scan>_pose.json``), when it has one with a target."""
+    if ds.source is None:
+        return None
+    path = Path(ds.source.path)
+    path = path if path.is_absolute() else workflow_dir / path
+    pose = path.with_name(path.stem + "_pose.json")
+    if not pose.is_file():
+        return None
+    try:
+        data = json.loads(pose.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{pose}: not a readable pose file: {exc}") from exc
+    return data if data.get("target") is not None and data.get("scanner") else None
+
+
+def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path
+                    ) -> list[tuple[np.ndarray, np.ndarray, str, np.ndarray]]:
+    """A dataset's frusta (vertices, faces, how it was found, the sensor position): one from its pose file, else
+    one per viewpoint fitted around the directions to its points."""
+    pose = _pose(ds, workflow_dir)
+    pts = ds.element_positions()
+    if pose is not None and (pose["scanner"].get("kind", "pinhole") == "pinhole"):
+        eye, target = np.asarray(pose["viewpoint"], float), np.asarray(pose["target"], float)
+        sc = pose["scanner"]
+        th = np.tan(np.radians(p.fov_deg or sc["fov_deg"]) / 2)
+        tv = th / (p.aspect or sc["aspect"])
+        far = p.far or float(sc["max_range"])
+        verts, faces = _frustum_mesh(eye, target - eye, (-th, th), (-tv, tv), p.near, far)
+        return [(verts, faces, f"{ds.name}: pinhole frustum from its pose file", eye)]
+    if ds.viewpoints is None or not len(pts):
+        return []
+    out = []
+    for eye in np.atleast_2d(ds.viewpoints):
+        d = pts - eye
+        fwd = d.mean(axis=0)
+        f, r, up = _frame(fwd)
+        depth = d @ f
+        if np.any(depth <= 1e-9 * np.linalg.norm(d, axis=1)):
+            raise ValueError(f"dataset {ds.name!r}: its points surround viewpoint {eye.tolist()} (a spherical scan); "
+                             f"state the region with manual_box")
+        a, b = (d @ r) / depth, (d @ up) / depth
+        m = np.tan(np.radians(p.margin_deg))
+        far = p.far or 1.05 * float(np.linalg.norm(d, axis=1).max())
+        verts, faces = _frustum_mesh(eye, f, (a.min() - m, a.max() + m), (b.min() - m, b.max() + m), p.near, far)
+        out.append((verts, faces, f"{ds.name}: frustum fitted to its points from {np.round(eye, 4).tolist()}", eye))
+    return out
+
+
+def sensor_frustum(ctx: StageContext) -> dict[str, Any]:
+    """The union of the sensors' frusta, minus what recent data occludes."""
+    frusta = []
+    for ds in ctx["recent"]:
+        frusta += _dataset_frusta(ds, ctx.params, ctx.epoch.workflow_dir)
+    if not frusta:
+        raise ValueError("no recent dataset carries viewpoints or a pose file: give the inputs 'viewpoints' or use "
+                         "manual_box")
+    verts, faces, start = [], [], 0
+    for v, f, _, _ in frusta:
+        verts.append(v)
+        faces.append(f + start)
+        start += len(v)
+    rov = RegionOfView(np.vstack(verts), np.vstack(faces), tuple(len(f) for _, f, _, _ in frusta))
+    stations = [(eye, lambda q, k=k: rov.contains(q, part=k)) for k, (_, _, _, eye) in enumerate(frusta)]
+    return look(ctx, rov, [how for _, _, how, _ in frusta], stations)

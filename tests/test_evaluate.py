@@ -11,7 +11,7 @@ import yaml
 from click.testing import CliRunner
 
 from gdt_pipeline.cli import cli
-from gdt_pipeline.evaluate import evaluate, format_table, missing_scene
+from gdt_pipeline.evaluation import evaluate, format_table, missing_scene
 from gdt_pipeline.simulation import make_fuselage_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -102,7 +102,7 @@ def test_missing_scene_names_the_generator(tmp_path: Path) -> None:
 
 
 def test_fusion_override_writes_a_variant_beside_the_workflow(small_fuselage: Path) -> None:
-    from gdt_pipeline.evaluate import with_fusion
+    from gdt_pipeline.evaluation import with_fusion
 
     variant = with_fusion(small_fuselage, "replace_in_view")
     try:

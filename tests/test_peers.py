@@ -7,7 +7,7 @@ import pytest
 
 pytest.importorskip("py4dgeo")
 
-from gdt_pipeline import peers
+from gdt_pipeline.evaluation import peers
 
 
 @pytest.fixture(scope="module")

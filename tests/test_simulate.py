@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from gdt_pipeline.evaluate import _candidates, _prf, _sweep
+from gdt_pipeline.evaluation import prf, sweep, threshold_candidates
 from gdt_pipeline.sensors import PRESETS
 from gdt_pipeline.simulation import ScannerSpec, make_fuselage_scene, simulate_scan, write_scan
 from gdt_pipeline.simulation.fuselage import NEW_BRACKETS, fuselage_objects
@@ -128,13 +128,13 @@ def test_fuselage_scene_truth_marks_exactly_the_new_brackets(tmp_path) -> None:
 def test_precision_recall_and_sweeps_on_hand_made_cases() -> None:
     truth = np.array([1, 1, 1, 0, 0, 0, 0, 0], bool)
     pred = np.array([1, 1, 0, 1, 0, 0, 0, 0], bool)
-    m = _prf(pred, truth)
+    m = prf(pred, truth)
     assert (m["tp"], m["fp"], m["fn"]) == (2, 1, 1)
     assert m["precision"] == pytest.approx(2 / 3) and m["recall"] == pytest.approx(2 / 3)
     assert m["f1"] == pytest.approx(2 / 3) and m["false_alarm_rate"] == pytest.approx(1 / 5)
-    none = _prf(np.zeros(4, bool), np.zeros(4, bool))  # no change, nothing flagged: F1 undefined, no false alarms
+    none = prf(np.zeros(4, bool), np.zeros(4, bool))  # no change, nothing flagged: F1 undefined, no false alarms
     assert none["f1"] is None and none["precision"] is None and none["false_alarm_rate"] == 0.0
     d = np.array([0.5, 0.4, 0.3, 0.02, 0.01, 0.005, np.inf])
     t = np.array([1, 1, 1, 0, 0, 0, 1], bool)
-    tau, best = _sweep(d, t, _candidates(d))
+    tau, best = sweep(d, t, threshold_candidates(d))
     assert 0.02 <= tau < 0.3 and best["f1"] == 1.0

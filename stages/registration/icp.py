@@ -1,0 +1,43 @@
+"""``gicp`` and ``point_to_plane``: Open3D's Generalized-ICP or point-to-plane ICP, coarse to fine over a voxel
+schedule, from an optional initial transform."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from gdt_pipeline import StageContext
+
+from ._icp import ScheduleParams, icp_schedule, registration_result, shifted, source_points, target_points
+
+
+def icp(ctx: StageContext, method: str) -> dict[str, Any]:
+    """ICP of ``method`` (gicp or point_to_plane) from the initial transform, coarse to fine."""
+    p = ctx.params
+    spacing = p.sample_spacing or p.voxels[-1] / 2
+    tgt = target_points(ctx["reference"], spacing, ctx.rng)
+    src = source_points(ctx["recent"], spacing, ctx.rng)
+    origin = tgt.mean(axis=0)
+    init_world = np.eye(4) if p.initial is None else np.asarray(p.initial, dtype=np.float64)
+    init_local = shifted(init_world, -origin)
+    t_local, fitness, rmse, dist = icp_schedule(src, tgt, p, method, init_local, origin)
+    return registration_result(ctx, src, tgt, t_local, origin, fitness, rmse, dist, method)
+
+
+class GicpParams(ScheduleParams):
+    """Generalized-ICP, coarse to fine."""
+
+
+class PointToPlaneParams(ScheduleParams):
+    """Point-to-plane ICP, coarse to fine."""
+
+
+def gicp(ctx: StageContext) -> dict[str, Any]:
+    """Generalized-ICP to the twin's geometry."""
+    return icp(ctx, "gicp")
+
+
+def point_to_plane(ctx: StageContext) -> dict[str, Any]:
+    """Point-to-plane ICP to the twin's geometry."""
+    return icp(ctx, "point_to_plane")

@@ -39,10 +39,10 @@ system-deps:
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
 	fi
 
-$(STAMP): pyproject.toml plugins/gdt-c2c/pyproject.toml
+$(STAMP): pyproject.toml plugins/gdt-c2c/pyproject.toml plugins/gdt-m3c2/pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[dev,eval]" -e plugins/gdt-c2c
+	$(BIN)/python -m pip install -q -e ".[dev,eval]" -e plugins/gdt-c2c -e plugins/gdt-m3c2
 	@touch $(STAMP)
 
 clean:

@@ -7,8 +7,9 @@
   (t = nᵀd / √(nᵀΣ₁n + nᵀΣ₂n), two-sided p-value), as a baseline inside the pipeline;
 - ``euclidean``: the plain distance, for comparison.
 
-Every stage attaches to its ``Scores`` a ``simulate(rng, n)`` that scores n unchanged pairs drawn from the actual
-uncertainty models, which the ``calibrated`` threshold uses.
+Each is a pair function run through the public ``gdt_pipeline.measures`` (pairing of correspondences, lowest score
+per element, and a ``simulate(rng, n)`` on every ``Scores`` that scores n unchanged pairs drawn from the actual
+uncertainty models, which the ``calibrated_threshold`` stage uses); the Bhattacharyya maths is in ``.measures``.
 """
 
 from __future__ import annotations

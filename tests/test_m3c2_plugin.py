@@ -44,6 +44,7 @@ stages:
 def _direct(reference: np.ndarray, recent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """py4dgeo's M3C2 called as its documentation shows, every recent point a core point; NaN where it finds no
     normal (fewer than 3 reference points within the normal radius: py4dgeo leaves those normals uninitialised)."""
+    logging.getLogger("py4dgeo").setLevel(logging.WARNING)  # py4dgeo logs each KD-tree to ./py4dgeo.log
     algo = py4dgeo.M3C2(epochs=(py4dgeo.Epoch(reference), py4dgeo.Epoch(recent)), corepoints=recent, **PARAMS)
     distance, uncertainty = algo.run()
     lod = uncertainty["lodetection"].copy()

@@ -1,5 +1,5 @@
 # The two commands of the README: `make demo` and `make test`. Each sets up everything it needs on a fresh machine:
-# the Debian libraries Open3D loads, a virtual environment in .venv, the package and the example plugin.
+# the Debian libraries Open3D loads, a virtual environment in .venv, the package and the example plugins.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin

@@ -39,7 +39,7 @@ def m3c2_peers(methods: dict, peers: tuple[str, ...], prev_sets: list, points: n
                truth: ScanTruth, rng: np.random.Generator, row: dict, say: Any) -> None:
     """Add the M3C2 and M3C2-EP peers asked for to ``methods`` (a note in ``row`` when py4dgeo is missing)."""
     if not peer_lib.available():
-        row["notes"].append("py4dgeo is not installed (pip install 'gdt-pipeline[peers]'): M3C2 peers skipped")
+        row["notes"].append("py4dgeo is not installed (pip install 'gdt-pipeline[eval]'): M3C2 peers skipped")
         return
     # Lague et al. (2013): a projection cylinder holding at least ~30 points, normals at twice that scale
     extent = np.ptp(points, axis=0)

@@ -14,8 +14,8 @@ import pytest
 from pydantic import BaseModel
 
 from gdt_pipeline import PluginError, StageSpec, hookimpl
-from gdt_pipeline.plugins import registry as plugins_mod
 from gdt_pipeline.plugins import FAMILIES, load_registry
+from gdt_pipeline.plugins import registry as plugins_mod
 
 from .conftest import REPO, run_gdt
 

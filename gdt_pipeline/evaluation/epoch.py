@@ -12,6 +12,7 @@ from twin_store import TwinStore
 
 from ..geometry import ReferenceIndex
 from ..plugins import Registry
+from ..provenance import EpochProvenance
 from .metrics import prf
 from .peer_runs import c2c_methods, m3c2_peers
 from .scoring import composite_distance, score_new_objects, score_removal, score_segments
@@ -22,12 +23,10 @@ from .twin_points import composite_from_twin
 def gdt_seconds(store: TwinStore, epoch: str) -> float | None:
     """The workflow's own time for an epoch (the sum of its stages), from the twin's provenance."""
     try:
-        prov = store.provenance(epoch)
+        stages = EpochProvenance.from_dict(store.provenance(epoch)).stages
     except Exception:  # an older twin without the record: the time is simply not known
         return None
-    stages = prov.get("stages", [])
-    total = sum(float(s.get("seconds", 0.0)) for s in stages if isinstance(s, dict))
-    return round(total, 3) if stages else None
+    return round(sum(s.seconds for s in stages), 3) if stages else None
 
 
 def evaluate_epoch(wf: Any, store: TwinStore, prev_id: str, epoch: Any, registry: Registry,

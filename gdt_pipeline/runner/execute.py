@@ -183,6 +183,7 @@ def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: P
             prov, slots = _run_epoch(run, epoch, composite, epoch_key)
             composite, epoch_key = slots["composite"], prov.epoch_key
             summary = _write_epoch(store, prov, slots, target, time.perf_counter() - t_epoch)
+            del slots  # this epoch's datasets, matches and scores must not stay alive through the next epoch
             result.epochs.append(summary)
             reporter.epoch_finished(summary)
             lock["epochs"].append(prov.lock_entry())

@@ -73,6 +73,7 @@ class InputRecord:
     scale: float = 1.0
     viewpoints: list | None = None
     elements: int = 0
+    notes: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

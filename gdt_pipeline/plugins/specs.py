@@ -130,6 +130,11 @@ class ReadRequest:
     kind: str | None
     sha256: str
     params: Any = None
+    notes: dict[str, Any] = field(default_factory=dict)
+
+    def report(self, **values: Any) -> None:
+        """Record what reading did to the data (e.g. degenerate facets dropped): it goes into the input's provenance."""
+        self.notes.update(values)
 
 
 @dataclass(frozen=True)

@@ -262,7 +262,7 @@ def _input_record(ds: Dataset, kind_hint: str | None, viewpoints: list | None) -
     src = ds.source
     return InputRecord(path=src.path, sha256=src.sha256, name=ds.name, kind=ds.kind, kind_hint=kind_hint,
                        reader=src.reader, units=src.units, scale=src.scale, viewpoints=viewpoints,
-                       elements=ds.n_elements)
+                       elements=ds.n_elements, notes=dict(src.notes))
 
 
 def _plain(value: Any) -> Any:

@@ -43,6 +43,16 @@ def check_dataset(ds: Dataset, where: str) -> None:
                          f"(first rows {first}); clean the file or remove those points")
 
 
+def _check_file(path: Path, where: str) -> None:
+    """Name what is wrong with the path itself before any reader is asked."""
+    if path.is_dir():
+        raise InputError(f"{where}: is a directory, not a file")
+    if not path.exists():
+        raise InputError(f"{where}: file not found")
+    if path.stat().st_size == 0:
+        raise InputError(f"{where}: the file is empty (0 bytes)")
+
+
 def _select_reader(path: Path, registry: Registry, kind: str | None, reader: str | None, where: str) -> ReaderSpec:
     if reader:
         return registry.reader(reader)
@@ -56,6 +66,7 @@ def read_dataset(path: Path, registry: Registry, *, name: str, role: str = "as-i
                  reader: str | None = None, digest: str = "", where: str | None = None) -> Dataset:
     """Read one file with the reader its extension (or ``reader``) selects, and check the geometry is usable."""
     where = where or str(path)
+    _check_file(path, where)
     spec = _select_reader(path, registry, kind, reader, where)
     request = ReadRequest(path, name, role, kind, digest, params=spec.params())
     try:
@@ -67,7 +78,8 @@ def read_dataset(path: Path, registry: Registry, *, name: str, role: str = "as-i
     if not isinstance(ds, Dataset):
         raise StageError(f"{where}: reader {spec.name!r} returned {type(ds).__name__}, not a Dataset")
     check_dataset(ds, where)
-    return dataclasses.replace(ds, source=SourceInfo(path=str(path), sha256=digest, reader=spec.name))
+    return dataclasses.replace(ds, source=SourceInfo(path=str(path), sha256=digest, reader=spec.name,
+                                                     notes=dict(request.notes)))
 
 
 def read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int, digest: str) -> Dataset:
@@ -80,7 +92,8 @@ def read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int
     return dataclasses.replace(
         ds, points=ds.points * scale if scale != 1.0 else ds.points, viewpoints=vps,
         source=SourceInfo(path=relative_to_workflow(inp.path, plan.base_dir), sha256=digest, units=inp.units,
-                          scale=scale, reader=ds.source.reader if ds.source else ""))
+                          scale=scale, reader=ds.source.reader if ds.source else "",
+                          notes=ds.source.notes if ds.source else {}))
 
 
 def input_digests(plan: RunPlan) -> dict[tuple[int, int], str]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +22,8 @@ class SourceInfo:
     units: str = "m"
     scale: float = 1.0
     reader: str = ""
+    # what reading did to the data (a reader's ``ReadRequest.report``), e.g. degenerate facets dropped
+    notes: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import GdtError
 from .names import UNITS as UNITS_M
@@ -29,7 +29,7 @@ from .types import Dataset
 class SensorProfile(BaseModel):
     """The noise model of one scanner (see the module docstring for the formula)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     name: str
     description: str = ""
     units: Units = "m"
@@ -38,6 +38,21 @@ class SensorProfile(BaseModel):
     lateral_sigma: list[float] = Field(min_length=2, max_length=2, description="b0, b1 of σ_lateral = b0 + b1·r")
     min_cos_incidence: float = Field(0.2, gt=0, le=1, description="Floor of cos θ in the incidence scaling.")
     calibration: dict[str, Any] | None = Field(None, description="How the profile was estimated (gdt calibrate).")
+
+    @field_validator("range_sigma", "lateral_sigma")
+    @classmethod
+    def _non_negative(cls, terms: list[float]) -> list[float]:
+        # a negative coefficient would be squared into a valid-looking covariance: a sign error must not pass
+        bad = [f"[{i}] = {t:g}" for i, t in enumerate(terms) if t < 0]
+        if bad:
+            raise ValueError(f"σ coefficients must be ≥ 0; negative: {', '.join(bad)}")
+        return terms
+
+    @model_validator(mode="after")
+    def _some_noise(self) -> SensorProfile:
+        if not any(t > 0 for t in (*self.range_sigma, *self.lateral_sigma)):
+            raise ValueError("range_sigma and lateral_sigma are all 0: a profile needs at least one σ term > 0")
+        return self
 
     def sigmas(self, rng: np.ndarray, cos_incidence: np.ndarray | None, to_units: str) -> tuple[np.ndarray,
                                                                                                 np.ndarray]:
@@ -78,14 +93,36 @@ def load_profile(ref: str, base_dir: Path) -> SensorProfile:
     """A preset by name, or a profile YAML file (relative to ``base_dir``)."""
     if ref in PRESETS:
         return PRESETS[ref]
+    from .workflow.marks import parse_bounded, read_text_bounded
+
     path = (base_dir / ref).resolve()
-    if not path.is_file():
+    if not path.exists():
         raise GdtError(f"sensor profile {ref!r}: not a preset ({', '.join(PRESETS)}) and no file {path}")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        _, data = parse_bounded(read_text_bounded(path, "sensor profile", max_bytes=1024 * 1024), str(path))
+    except ValueError as exc:
+        raise GdtError(f"sensor profile {ref!r}: {exc}") from None
+    if not isinstance(data, dict):
+        raise GdtError(f"{path}: not a valid sensor profile: a YAML mapping with name, range_sigma and lateral_sigma "
+                       f"is needed")
+    try:
         return SensorProfile.model_validate(data)
-    except (yaml.YAMLError, ValidationError) as exc:
-        raise GdtError(f"{path}: not a valid sensor profile: {exc}") from exc
+    except ValidationError as exc:
+        what = "; ".join(f"{'.'.join(str(p) for p in e['loc']) or '(top)'}: {e['msg']}"
+                         for e in exc.errors(include_url=False))
+        raise GdtError(f"{path}: not a valid sensor profile: {what}") from None
+
+
+def profile_problems(ref: str, base_dir: Path, *, isotropic: bool = False) -> list[str]:
+    """What is wrong with a profile reference, found before a run (missing, a folder, unreadable, invalid, and for
+    ``isotropic`` not isotropic); empty when it loads."""
+    try:
+        profile = load_profile(ref, base_dir)
+        if isotropic:
+            profile.isotropic_sigma("m")
+    except GdtError as exc:
+        return [str(exc)]
+    return []
 
 
 def save_profile(profile: SensorProfile, path: Path) -> Path:

@@ -36,11 +36,14 @@ class _LoadedPlugin:
 
 
 def _forbid_extra(params: type[BaseModel]) -> type[BaseModel]:
-    """Params models must reject unknown keys, so a misspelt parameter is an error, not a silent default."""
-    if params.model_config.get("extra") == "forbid":
+    """Params models must reject unknown keys, so a misspelt parameter is an error, not a silent default, and NaN or
+    infinite numbers (``.inf`` as a σ), which no stage can use, unless the model's config or a field allows them."""
+    cfg = params.model_config
+    strict = {"extra": "forbid", "allow_inf_nan": cfg.get("allow_inf_nan", False)}
+    if all(cfg.get(k) == v for k, v in strict.items()):
         return params
-    cfg = ConfigDict(**{**params.model_config, "extra": "forbid"})
-    return type(params.__name__, (params,), {"model_config": cfg, "__module__": params.__module__})
+    return type(params.__name__, (params,), {"model_config": ConfigDict(**{**cfg, **strict}),
+                                             "__module__": params.__module__, "__doc__": params.__doc__})
 
 
 def _check_common(spec: StageSpec | ReaderSpec, origin: str) -> str | None:
@@ -60,6 +63,8 @@ def _check_spec(spec: object, origin: str) -> str | None:
                 f"(choose one of: {', '.join(FAMILIES)})")
     if not callable(spec.run):
         return f"{origin}: stage {spec.name!r} run is not callable"
+    if spec.validate is not None and not callable(spec.validate):
+        return f"{origin}: stage {spec.name!r} validate is not callable"
     return _check_common(spec, origin)
 
 

@@ -102,7 +102,9 @@ class StageSpec:
 
     ``run(ctx)`` returns a mapping with exactly the ``provides`` slots. ``requires`` must be present before the stage
     runs (checked when the workflow is loaded); ``optional`` slots are handed over when present. ``check`` may add a
-    static rule about the slots available (return a message to reject).
+    static rule about the slots available (return a message to reject). ``validate(params, workflow_dir)`` may check
+    what the params name outside the workflow (files: present, readable, well-formed) before anything runs: it returns
+    ``(key, message)`` problems, ``key`` the parameter's dotted path under ``with`` (e.g. ``parts.0.path``).
     """
 
     name: str
@@ -115,6 +117,7 @@ class StageSpec:
     optional: tuple[str, ...] = ()
     description: str = ""
     check: Callable[[frozenset[str]], str | None] | None = None
+    validate: Callable[[Any, Path], Sequence[tuple[str, str]]] | None = None
     plugin: str = ""
     plugin_version: str = ""
     entry_point: str = ""

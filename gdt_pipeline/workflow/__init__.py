@@ -16,7 +16,7 @@ from pydantic import ValidationError
 
 from ..errors import WorkflowError
 from ..plugins import Registry
-from .checks import pydantic_problems, reference_problems, slot_problems
+from .checks import param_problems, pydantic_problems, reference_problems, slot_problems
 from .marks import Problems, loc_str, read_yaml
 from .model import (
     EpochSpec,
@@ -48,6 +48,8 @@ def load_workflow(path: str | Path, registry: Registry, *, check_files: bool = T
     slot_problems(data, registry, problems)
     if check_files:
         reference_problems(data, registry, problems, path.parent)
+        if model is not None:
+            param_problems(model, registry, problems, path.parent)
     if problems.items:
         raise WorkflowError(str(path), problems.sorted())
     return LoadedWorkflow(path=path, sha256=hashlib.sha256(text.encode()).hexdigest(), model=model, text=text)

@@ -51,7 +51,8 @@ def strip_tags(loc: tuple, data: Any) -> tuple:
 
 def pydantic_problems(exc: ValidationError, data: Any, registry: Registry, problems: Problems) -> None:
     for err in exc.errors(include_url=False):
-        loc = strip_tags(tuple(err["loc"]), data)
+        # a default `with` is validated under the field's own name
+        loc = strip_tags(tuple("with" if p == "with_" else p for p in err["loc"]), data)
         etype = err["type"]
         if etype == "union_tag_invalid":
             tag = err.get("ctx", {}).get("tag", "?")
@@ -74,9 +75,14 @@ def pydantic_problems(exc: ValidationError, data: Any, registry: Registry, probl
             problems.add(loc, err["msg"])
 
 
+def listed(value: Any) -> list:
+    """``value`` when it is a list, else empty: the checks below also run on data the schema rejected."""
+    return value if isinstance(value, list) else []
+
+
 def slot_problems(data: dict, registry: Registry, problems: Problems) -> None:
     """Check per epoch that every slot a stage requires is provided by the engine or an earlier stage."""
-    epochs = [e for e in data.get("epochs") or [] if isinstance(e, dict)]
+    epochs = [e for e in listed(data.get("epochs")) if isinstance(e, dict)]
     stages = data.get("stages") or []
     if not isinstance(stages, list) or not epochs:
         return
@@ -130,9 +136,9 @@ def slot_problems(data: dict, registry: Registry, problems: Problems) -> None:
 
 def reference_problems(data: dict, registry: Registry, problems: Problems, base: Path) -> None:
     """Checks that need more than the schema: epoch references, reader names, input files present."""
-    epochs = [e for e in data.get("epochs") or [] if isinstance(e, dict)]
+    epochs = [e for e in listed(data.get("epochs")) if isinstance(e, dict)]
     ids = [e.get("id") for e in epochs]
-    for s_index, entry in enumerate(data.get("stages") or []):
+    for s_index, entry in enumerate(listed(data.get("stages"))):
         if not isinstance(entry, dict):
             continue
         name = entry.get("uses")
@@ -140,28 +146,15 @@ def reference_problems(data: dict, registry: Registry, problems: Problems, base:
             problems.add(("stages", s_index, "uses"),
                          f"{name!r} is a reader: readers are chosen per input (set `reader:` on the input), "
                          f"not chained under stages")
-        for j, eid in enumerate(entry.get("epochs") or []):
+        for j, eid in enumerate(listed(entry.get("epochs"))):
             if eid not in ids:
-                problems.add(("stages", s_index, "epochs", j), unknown_name_message("epoch", str(eid), ids))
+                problems.add(("stages", s_index, "epochs", j),
+                             unknown_name_message("epoch", str(eid), [str(i) for i in ids]))
     for e_index, epoch in enumerate(epochs):
-        for i_index, inp in enumerate(epoch.get("inputs") or []):
-            if not isinstance(inp, dict):
-                continue
-            reader = inp.get("reader")
-            if isinstance(reader, str) and reader not in registry.names("reader"):
-                problems.add(("epochs", e_index, "inputs", i_index, "reader"),
-                             unknown_name_message("reader", reader, registry.names("reader")))
-            path = inp.get("path")
-            if isinstance(path, str):
-                full = (base / path).resolve()
-                if not full.is_file():
-                    problems.add(("epochs", e_index, "inputs", i_index, "path"), f"input file not found: {full}")
-                elif reader is None and not registry.readers_for(full, inp.get("kind")):
-                    exts = sorted({x for s in registry.stages("reader") for x in s.extensions})
-                    problems.add(("epochs", e_index, "inputs", i_index, "path"),
-                                 f"no installed reader accepts {full.name!r} (extensions: {', '.join(exts)})")
-        names = [inp.get("name") or Path(str(inp.get("path", ""))).stem
-                 for inp in epoch.get("inputs") or [] if isinstance(inp, dict)]
+        inputs = [(i, inp) for i, inp in enumerate(listed(epoch.get("inputs"))) if isinstance(inp, dict)]
+        for i_index, inp in inputs:
+            input_problems(inp, ("epochs", e_index, "inputs", i_index), registry, problems, base)
+        names = [str(inp.get("name") or Path(str(inp.get("path", ""))).stem) for _, inp in inputs]
         dups = sorted({n for n in names if names.count(n) > 1})
         if dups:
             problems.add(("epochs", e_index, "inputs"),
@@ -169,3 +162,49 @@ def reference_problems(data: dict, registry: Registry, problems: Problems, base:
                          f"(set `name:` on the inputs)")
 
 
+def input_problems(inp: dict, loc: tuple, registry: Registry, problems: Problems, base: Path) -> None:
+    """One input: its reader is installed, its path is a file (not a folder) that an installed reader accepts."""
+    reader = inp.get("reader")
+    if isinstance(reader, str) and reader not in registry.names("reader"):
+        problems.add((*loc, "reader"), unknown_name_message("reader", reader, registry.names("reader")))
+    path = inp.get("path")
+    if not isinstance(path, str):
+        return
+    try:
+        full = (base / path).resolve()
+        is_dir, is_file = full.is_dir(), full.is_file()
+    except (OSError, ValueError) as exc:  # a name too long, a NUL byte
+        problems.add((*loc, "path"), f"not a usable file path: {exc}")
+        return
+    if is_dir:
+        problems.add((*loc, "path"), f"{full} is a directory, not a file")
+    elif not is_file:
+        problems.add((*loc, "path"), f"input file not found: {full}")
+    elif reader is None:
+        kind = inp.get("kind") if inp.get("kind") in ("mesh", "points") else None
+        try:
+            accepted = registry.readers_for(full, kind)
+        except Exception as exc:  # a reader's `accepts` is plugin code; its failure names the file, not a crash
+            problems.add((*loc, "path"), f"cannot tell which reader accepts {full.name!r}: {type(exc).__name__}: "
+                                         f"{exc}")
+            return
+        if not accepted:
+            exts = sorted({x for s in registry.stages("reader") for x in s.extensions})
+            problems.add((*loc, "path"), f"no installed reader accepts {full.name!r} (extensions: {', '.join(exts)})")
+
+
+def param_problems(model: Any, registry: Registry, problems: Problems, base: Path) -> None:
+    """Each chain entry's ``validate`` hook: what its params name outside the workflow (files), before any run."""
+    for s_index, entry in enumerate(model.stages):
+        spec = registry.get(entry.uses)
+        if spec.validate is None:
+            continue
+        try:
+            found = list(spec.validate(entry.with_, base))
+        except Exception as exc:  # plugin code: its failure is a problem of this entry, not a crash of validate
+            problems.add(("stages", s_index, "with"), f"stage {spec.name!r} ({spec.plugin}) failed to check its "
+                                                      f"parameters: {type(exc).__name__}: {exc}")
+            continue
+        for key, message in found:
+            sub = tuple(int(p) if p.isdigit() else p for p in str(key).split(".") if p)
+            problems.add(("stages", s_index, "with", *sub), message)

@@ -16,9 +16,9 @@ Identifier = Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$", max_lengt
 
 
 class StrictModel(BaseModel):
-    """Unknown keys are errors: a misspelt key must not become a silent default."""
+    """Unknown keys are errors: a misspelt key must not become a silent default; no number may be NaN or infinite."""
 
-    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", populate_by_name=True, allow_inf_nan=False)
 
 
 class InputSpec(StrictModel):
@@ -103,7 +103,8 @@ def entry_model(spec: StageSpec) -> type[BaseModel]:
         __base__=StageEntryBase,
         __doc__=f"{spec.family} stage {spec.name!r} ({spec.plugin} {spec.plugin_version}). {spec.description}".strip(),
         uses=(Literal[spec.name], Field(description=spec.description or spec.name)),  # type: ignore[valid-type]
-        with_=(spec.params, Field(default_factory=spec.params, alias="with")),
+        # an empty mapping validated like a given one, so a stage whose params need a key is told so at its entry
+        with_=(spec.params, Field(default_factory=dict, alias="with", validate_default=True)),
     )
 
 

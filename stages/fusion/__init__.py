@@ -21,7 +21,8 @@ from __future__ import annotations
 
 from gdt_pipeline import StageSpec, hookimpl
 
-from ._compose import check_slots
+from ._compose import chain_check
+from ._fitting import part_problems
 from ._segments import PartParams, SegmentParams
 from .keep_unchanged import KeepUnchangedParams, keep_unchanged
 from .most_reliable import MostReliableParams, most_reliable
@@ -35,14 +36,16 @@ __all__ = ["KeepUnchangedParams", "MostReliableParams", "PartParams", "ReplaceIn
 def gdt_stages() -> list[StageSpec]:
     """The built-in fusions."""
     common = {"family": "fusion", "version": "1.2.0", "requires": ("recent",),
-              "optional": ("reference", "change", "rov"), "provides": ("composite",), "check": check_slots}
+              "optional": ("reference", "change", "rov"), "provides": ("composite",), "validate": part_problems}
     keep = "Known data stays; changed new elements come in; unchanged new ones are hidden."
     return [StageSpec(name="keep_unchanged", params=KeepUnchangedParams, run=keep_unchanged, description=keep,
-                      **common),
+                      check=chain_check("keep_unchanged", False), **common),
             StageSpec(name="keep_reference", params=KeepUnchangedParams, run=keep_unchanged,
-                      description=keep + " (the same as keep_unchanged)", **common),
+                      description=keep + " (the same as keep_unchanged)", check=chain_check("keep_reference", False),
+                      **common),
             StageSpec(name="most_reliable", params=MostReliableParams, run=most_reliable,
                       description="As keep_unchanged, but more precise new data replaces measured data in view.",
-                      **common),
+                      check=chain_check("most_reliable", True), **common),
             StageSpec(name="replace_in_view", params=ReplaceInViewParams, run=replace_in_view,
-                      description="The newest data replaces what it images inside the region of view.", **common)]
+                      description="The newest data replaces what it images inside the region of view.",
+                      check=chain_check("replace_in_view", True), **common)]

@@ -4,6 +4,7 @@ items with their change states and reasons, the replacement rule where the polic
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -15,11 +16,24 @@ from ._replace import Decision, replacements
 from ._segments import segments
 
 
-def check_slots(available: frozenset[str]) -> str | None:
-    """A fusion after the first epoch needs the change results."""
-    if "reference" in available and "change" not in available:
-        return "fusion 'keep_unchanged' needs slot 'change' once a reference exists (add distance and threshold stages)"
-    return None
+def chain_check(name: str, needs_rov: bool) -> Callable[[frozenset[str]], str | None]:
+    """The static rule of fusion ``name`` on the slots before it: from the second epoch on it needs the change
+    results and, when it replaces known data by what is in view (``needs_rov``), a region of view."""
+    def check(available: frozenset[str]) -> str | None:
+        if "reference" not in available:
+            return None  # the first epoch is the baseline: nothing to compare, nothing to replace
+        if "change" not in available:
+            return f"fusion {name!r} needs slot 'change' once a reference exists (add distance and threshold stages)"
+        if needs_rov and "rov" not in available:
+            return (f"fusion {name!r} needs a region-of-view stage before it once a reference exists: new data "
+                    f"replaces old only where its region of view encloses the old (add `uses: sensor_frustum`, or "
+                    f"`manual_box`, before it)")
+        return None
+
+    return check
+
+
+check_slots = chain_check("keep_unchanged", False)
 
 
 def _carried(reference: Composite, rov: RegionOfView | None) -> tuple[list[CompositeItem], dict[int, np.ndarray]]:

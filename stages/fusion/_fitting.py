@@ -16,6 +16,22 @@ from .parts import PartFit, PartModel, fit_part, load_part
 Try = tuple[PartFit, PartModel, list[Segment]]  # a fit, the part fitted, and the segments it was fitted to
 
 
+def part_problems(params: Any, base: Path) -> list[tuple[str, str]]:
+    """The catalogue parts' model files, checked before a run: each present, a file, not empty."""
+    out = []
+    for k, p in enumerate(params.parts):
+        path = Path(p.path) if Path(p.path).is_absolute() else base / p.path
+        try:
+            problem = (f"{path} is a directory, not a file" if path.is_dir() else
+                       f"no model file {path}" if not path.is_file() else
+                       f"its model file {path} is empty (0 bytes)" if path.stat().st_size == 0 else None)
+        except (OSError, ValueError) as exc:  # a name too long, a NUL byte
+            problem = f"not a usable file path: {exc}"
+        if problem:
+            out.append((f"parts.{k}.path", f"part {p.name!r}: {problem}"))
+    return out
+
+
 def load_parts(ctx: StageContext) -> list[PartModel]:
     """The catalogue parts of the stage's parameters, read and sampled (paths relative to the workflow)."""
     parts = []

@@ -15,7 +15,7 @@ from gdt_pipeline import CompositeItem, Dataset, Segment
 class PartParams(BaseModel):
     """A catalogue part to recognise among the new segments."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     name: str = Field(description="The part's name (a part number), recorded on the segments it fits.")
     path: str = Field(description="Its CAD model (any mesh format trimesh reads; relative to the workflow file), "
                                   "in the part's own frame and the workflow's units.")

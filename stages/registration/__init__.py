@@ -19,7 +19,7 @@ from gdt_pipeline import StageSpec, hookimpl
 
 from ._icp import ScheduleParams, icp_schedule, source_points, target_points, transform_covariance
 from .coarse import CoarseParams, coarse
-from .given import GivenParams, given
+from .given import GivenParams, given, matrix_problems
 from .icp import GicpParams, PointToPlaneParams, gicp, point_to_plane
 from .identity import IdentityParams, identity
 from .stable_areas import StableAreasParams, stable_areas
@@ -41,6 +41,7 @@ def gdt_stages() -> list[StageSpec]:
                   requires=("recent",), provides=("recent", "registration"),
                   description="Keep the recent data where it is (pre-registered input)."),
         StageSpec(name="given", family="registrar", version=VERSION, params=GivenParams, run=given,
+                  validate=matrix_problems,
                   requires=("recent",), provides=("recent", "registration"),
                   description="Apply a known 4x4 transform (inline or from a file)."),
         StageSpec(name="gicp", params=GicpParams, run=gicp,

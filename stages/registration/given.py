@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from gdt_pipeline import Registration, StageContext
 
@@ -29,11 +29,35 @@ class GivenParams(BaseModel):
             check_rigid(np.asarray(v), "transform")
         return v
 
+    @model_validator(mode="after")
+    def _one_source(self) -> GivenParams:
+        if (self.transform is None) == (self.file is None):
+            raise ValueError("set exactly one of `transform` or `file`")
+        return self
+
+
+def matrix_problems(params: GivenParams, base: Path) -> list[tuple[str, str]]:
+    """The transform file, checked before a run: present, a file, a rigid 4x4 (whitespace text, .npy or .json)."""
+    if params.file is None:
+        return []
+    path = (base / params.file).resolve()
+    if path.is_dir():
+        return [("file", f"{path} is a directory, not a file")]
+    if not path.is_file():
+        return [("file", f"transform file not found: {path}")]
+    if path.stat().st_size > 1024 * 1024:
+        return [("file", f"{path}: {path.stat().st_size:,} bytes is not a 4x4 transform")]
+    try:
+        check_rigid(load_matrix(path), str(path))
+    except (ValueError, OSError, TypeError) as exc:  # numpy's and json's parse errors are ValueErrors
+        return [("file", f"not a rigid 4x4 transform: {exc}")]
+    return []
+
 
 def load_matrix(path: Path) -> np.ndarray:
     """A 4x4 from whitespace text, .npy or .json."""
     if path.suffix == ".npy":
-        return np.load(path)
+        return np.load(path, allow_pickle=False)
     if path.suffix == ".json":
         return np.asarray(json.loads(path.read_text()), dtype=np.float64)
     return np.loadtxt(path)
@@ -46,8 +70,9 @@ def given(ctx: StageContext) -> dict[str, Any]:
         raise ValueError("given: set exactly one of `transform` or `file`")
     if p.file is not None:
         path = (ctx.epoch.workflow_dir / p.file).resolve()
-        if not path.is_file():
-            raise ValueError(f"given: transform file not found: {path}")
+        problems = matrix_problems(p, ctx.epoch.workflow_dir)
+        if problems:
+            raise ValueError(f"given: {problems[0][1]}")
         t = check_rigid(load_matrix(path), str(path))
     else:
         t = np.asarray(p.transform, dtype=np.float64)

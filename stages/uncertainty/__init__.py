@@ -12,7 +12,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 from gdt_pipeline import StageSpec, hookimpl
+from gdt_pipeline.sensors import profile_problems
 
 from .calibrated import CalibratedParams, calibrated
 from .constant import ConstantParams, constant
@@ -24,6 +28,16 @@ __all__ = ["CalibratedParams", "ConstantParams", "PropagationParams", "SensorMod
            "gdt_stages"]
 
 
+def _profile_isotropic(params: Any, base: Path) -> list[tuple[str, str]]:
+    """`calibrated`'s profile, checked before a run: a readable, valid, isotropic profile."""
+    return [("profile", m) for m in profile_problems(params.profile, base, isotropic=True)]
+
+
+def _profile(params: Any, base: Path) -> list[tuple[str, str]]:
+    """`sensor_model`'s profile, checked before a run: a preset or a readable, valid profile file."""
+    return [("profile", m) for m in profile_problems(params.profile, base)]
+
+
 @hookimpl
 def gdt_stages() -> list[StageSpec]:
     """The built-in uncertainty estimators."""
@@ -31,9 +45,9 @@ def gdt_stages() -> list[StageSpec]:
     return [
         StageSpec(name="constant", params=ConstantParams, run=constant,
                   description="One Gaussian (isotropic/anisotropic) or tolerance box for a whole dataset.", **common),
-        StageSpec(name="calibrated", params=CalibratedParams, run=calibrated,
+        StageSpec(name="calibrated", params=CalibratedParams, run=calibrated, validate=_profile_isotropic,
                   description="Isotropic σ of a profile from `gdt calibrate` (scans of a known object).", **common),
-        StageSpec(name="sensor_model", params=SensorModelParams, run=sensor_model,
+        StageSpec(name="sensor_model", params=SensorModelParams, run=sensor_model, validate=_profile,
                   description="Per-point covariance from sensor pose, range and incidence (preset or profile).",
                   **common),
         StageSpec(name="voxel_mle", params=VoxelMleParams, run=voxel_mle,

@@ -204,8 +204,10 @@ def audit_twin(twin: str | Path, *, epoch: str | None = None, strict: bool = Fal
     upto = epoch or epochs[-1]
     if upto not in epochs:
         raise GdtError(f"twin {twin} has no epoch {upto!r} (epochs: {', '.join(epochs)})")
+    store.verify()  # a layer that is not the file that was written is an error before anything is re-run
     report = AuditReport(twin=str(Path(twin).resolve()), strict=strict)
     plan, report.warnings, problems = plan_from_twin(store, registry, upto, base_dir=base_dir)
+    report.warnings += store.run_lock_problems()
     audited = epochs[: epochs.index(upto) + 1]
     broken = next((i for i, e in enumerate(audited) if e in problems), None)
     runnable = audited if broken is None else audited[:broken]

@@ -13,6 +13,7 @@ from pxr import Sdf, Vt
 
 from gdt_pipeline.audit import audit_twin
 from gdt_pipeline.runner import run_workflow
+from twin_store import sha256_file
 
 from .conftest import CubeScene, run_gdt, write_cube_workflow
 
@@ -65,6 +66,14 @@ def _edit_layer(path: Path, fn) -> None:
     layer = Sdf.Layer.FindOrOpen(str(path))
     fn(layer)
     assert layer.Save()
+    # A deliberate edit: the root's record of the layer's sha256 is made to follow it, so that these tests reach the
+    # audit's own comparisons (an edit the record does not follow is refused before them: test_twin_safety).
+    root = Sdf.Layer.FindOrOpen(str(path.parents[1] / "twin.usda"))
+    data = dict(root.customLayerData)
+    gdt = dict(data["gdt"])
+    gdt["layer_sha256"] = {**gdt["layer_sha256"], f"epochs/{path.name}": sha256_file(path)}
+    root.customLayerData = {**data, "gdt": gdt}
+    assert root.Save()
 
 
 def test_edited_stored_score_fails(twin: Path) -> None:

@@ -2,17 +2,23 @@
 
 Depends on numpy and pxr only. Modules: ``names`` (codes, paths, primvar docs), ``elements`` (ElementSet and its
 USD prim), ``guides`` (regions of view, segments), ``history`` (epoch records, diffs), ``layers`` (atomic layer
-files), ``lock`` (the writer lock), ``store`` (TwinStore)."""
+files), ``integrity`` (layer sha256s, what a twin folder owns), ``swap`` (replacing a whole twin, recovery after a
+kill), ``faults`` (the kill tests' injection points), ``lock`` (the writer lock), ``store`` (TwinStore)."""
 
 from .elements import ElementSet
 from .errors import TwinStoreError
+from .faults import FAULT_STEPS, fault
 from .history import EpochRecord, SetDiff
+from .integrity import foreign_files, sha256_file
 from .lock import lock_path, writer_lock
-from .names import REASON_NAMES, STATE_COLORS, STATE_NAMES
+from .names import REASON_NAMES, RUN_LOCK_NAME, STATE_COLORS, STATE_NAMES
 from .store import TwinStore
+from .swap import partial_path, recover_leftovers, swap_into_place
 
 __all__ = [
+    "FAULT_STEPS",
     "REASON_NAMES",
+    "RUN_LOCK_NAME",
     "STATE_COLORS",
     "STATE_NAMES",
     "ElementSet",
@@ -20,6 +26,12 @@ __all__ = [
     "SetDiff",
     "TwinStore",
     "TwinStoreError",
+    "fault",
+    "foreign_files",
     "lock_path",
+    "partial_path",
+    "recover_leftovers",
+    "sha256_file",
+    "swap_into_place",
     "writer_lock",
 ]

@@ -32,12 +32,15 @@ def writer_lock(twin: str | Path) -> Iterator[None]:
             holder = fh.read().strip() or "unknown process"
             raise TwinStoreError(f"twin {Path(twin).resolve()} is being written by another writer ({holder}); "
                                  f"wait for it to finish (lock: {path})") from None
-        fh.seek(0)
-        fh.truncate()
-        fh.write(f"pid {os.getpid()} since {time.strftime('%Y-%m-%dT%H:%M:%S')}")
-        fh.flush()
-        yield
+        try:
+            fh.seek(0)
+            fh.truncate()
+            fh.write(f"pid {os.getpid()} since {time.strftime('%Y-%m-%dT%H:%M:%S')}")
+            fh.flush()
+            yield
+        finally:
+            # only the holder clears the record: a refused writer must leave the holder's pid for the next one
+            with contextlib.suppress(OSError):
+                fh.truncate(0)
     finally:
-        with contextlib.suppress(OSError):
-            fh.truncate(0)
         fh.close()  # closing releases the flock

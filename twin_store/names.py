@@ -41,3 +41,6 @@ DOC_REASON = ("Per-element fusion reason code: " + ", ".join(f"{i}={n}" for i, n
 DOC_RATIO = ("The fusion rule's number per element: √det Σ of the new data over that of the known data it was "
              "compared with (replaced, replaces, known_more_precise); NaN where no comparison was made.")
 DOC_ROTATION = "Box axes per element: a row-major 3x3 rotation whose columns are the axes."
+
+# The run record a `gdt run` writes into the twin folder (seed, packages, cache keys, layer sha256s); the twin owns it.
+RUN_LOCK_NAME = "gdt.lock"

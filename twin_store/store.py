@@ -27,9 +27,11 @@ from . import guides
 from .elements import ElementSet, define_element_set, override_element_set, read_element_set
 from .errors import TwinStoreError
 from .history import EpochRecord, SetDiff, count_states, epoch_record, set_diff
-from .layers import export_atomic, open_layer
+from .integrity import LayerDigests, run_lock_problems
+from .layers import export_atomic, open_layer, usd_message
 from .lock import writer_lock
 from .names import EPOCH_DIR, REASON_NAMES, ROOT_NAME, STATE_NAMES, TWIN_PRIM
+from .swap import leftover_advice, leftovers
 
 
 class TwinStore:
@@ -39,6 +41,7 @@ class TwinStore:
         self._path = path
         self._lock = lock
         self._holding = False
+        self._digests = LayerDigests()
 
     @property
     def path(self) -> Path:
@@ -79,7 +82,8 @@ class TwinStore:
         """Open an existing twin folder."""
         path = Path(path)
         if not (path / ROOT_NAME).is_file():
-            raise TwinStoreError(f"{path} is not a twin (no {ROOT_NAME})")
+            advice = "; ".join(leftover_advice(lo, path) for lo in leftovers(path.absolute()))
+            raise TwinStoreError(f"{path} is not a twin (no {ROOT_NAME})" + (f"; {advice}" if advice else ""))
         return cls(path)
 
     @contextlib.contextmanager
@@ -97,6 +101,29 @@ class TwinStore:
 
     def _root(self) -> Sdf.Layer:
         return open_layer(self.root_path)
+
+    def layer_digests(self) -> dict[str, str]:
+        """The sha256 of each epoch layer as recorded in the root when it was written, by sublayer path."""
+        data = self._root().customLayerData.get("gdt", {})
+        sums = data.get("layer_sha256", {}) if isinstance(data, dict) else None
+        if not isinstance(sums, dict):
+            raise TwinStoreError(f"{self.root_path}: its record of layer sha256s is not a mapping; the root is damaged")
+        return {str(k): str(v) for k, v in sums.items()}
+
+    def run_lock_problems(self) -> list[str]:
+        """What is wrong with the run record ``gdt.lock`` (missing, unparsable, disagreeing sha256s); [] if fine."""
+        return run_lock_problems(self._path, self.layer_digests())
+
+    def verify(self) -> None:
+        """Check every epoch layer against its recorded sha256 (a TwinStoreError names the first bad one)."""
+        for eid in self.epochs():
+            self._layer(eid)
+
+    def _layer(self, epoch_id: str) -> Sdf.Layer:
+        """An epoch's layer, after checking the file has the sha256 recorded when it was written."""
+        path = self._epoch_file(epoch_id)
+        self._digests.verify(path, self.layer_digests().get(f"{EPOCH_DIR}/{path.name}"), epoch_id)
+        return open_layer(path)
 
     def epochs(self) -> list[str]:
         """Epoch ids, oldest first."""
@@ -118,13 +145,14 @@ class TwinStore:
         root = self._root()
         anon = Sdf.Layer.CreateAnonymous("compose.usda")
         anon.TransferContent(root)
-        paths = [str(self._epoch_file(e)) for e in reversed(list(epochs))]
+        layers = [self._layer(e) for e in reversed(list(epochs))]  # verified, and held open while composing
         anon.subLayerPaths.clear()
-        for p in ([extra.identifier] if extra is not None else []) + paths:
-            anon.subLayerPaths.append(p)
-        for p in paths:
-            open_layer(Path(p))
-        return Usd.Stage.Open(anon)
+        for layer in ([extra] if extra is not None else []) + layers:
+            anon.subLayerPaths.append(layer.identifier)
+        try:
+            return Usd.Stage.Open(anon)
+        except Tf.ErrorException as exc:
+            raise TwinStoreError(f"cannot compose twin {self._path}: {usd_message(exc)}") from None
 
     # ----------------------------------------------------------------------------------------------------------------
     # Writing an epoch
@@ -153,12 +181,18 @@ class TwinStore:
                                          "reason_names": Vt.StringArray(list(REASON_NAMES)),
                                          "provenance_json": json.dumps(provenance, sort_keys=True, default=str)}}
         target = self._epoch_file(epoch_id)
-        export_atomic(layer, target)
-        root = self._root()
+        digest = export_atomic(layer, target, ("layer-exported", "layer-renamed"))
+        self._digests.remember(target, digest)
+        rel = f"{EPOCH_DIR}/{epoch_id}.usdc"
         new_root = Sdf.Layer.CreateAnonymous("root.usda")
-        new_root.TransferContent(root)
-        new_root.subLayerPaths.insert(0, f"{EPOCH_DIR}/{epoch_id}.usdc")
-        export_atomic(new_root, self.root_path)
+        new_root.TransferContent(self._root())
+        new_root.subLayerPaths.insert(0, rel)
+        # the layer's sha256, so readers can prove it is the file that was written (see integrity)
+        data = dict(new_root.customLayerData)
+        gdt = dict(data.get("gdt", {}))
+        gdt["layer_sha256"] = {**dict(gdt.get("layer_sha256", {})), rel: digest}
+        new_root.customLayerData = {**data, "gdt": gdt}
+        export_atomic(new_root, self.root_path, ("root-exported", "root-written"))
         return target
 
     def _check_new_epoch(self, epoch_id: str, elements: Sequence[ElementSet]) -> list[str]:
@@ -211,8 +245,12 @@ class TwinStore:
         """The provenance recorded with an epoch."""
         if epoch_id not in self.epochs():
             raise TwinStoreError(f"{self._path}: no epoch {epoch_id!r}")
-        data = open_layer(self._epoch_file(epoch_id)).customLayerData.get("gdt", {})
-        return json.loads(data.get("provenance_json", "{}"))
+        data = self._layer(epoch_id).customLayerData.get("gdt", {})
+        try:
+            return json.loads(data.get("provenance_json", "{}"))
+        except json.JSONDecodeError as exc:
+            raise TwinStoreError(f"{self._epoch_file(epoch_id)}: its provenance is not valid JSON ({exc.msg} at "
+                                 f"line {exc.lineno}:{exc.colno})") from None
 
     # ----------------------------------------------------------------------------------------------------------------
     # History queries

@@ -46,7 +46,10 @@ def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
     """List the epochs of TWIN: when, from which inputs, and how many elements are unchanged/new/removed."""
     from twin_store import TwinStore
 
-    records = TwinStore.open(twin).history()
+    store = TwinStore.open(twin)
+    records = store.history()  # every layer is checked against its recorded sha256 before it is read
+    for problem in store.run_lock_problems():
+        err_console.print(Text.assemble(("warning: ", "yellow"), problem), soft_wrap=True)
     if provenance and not as_json:
         import yaml
 

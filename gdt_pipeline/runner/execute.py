@@ -6,7 +6,9 @@ the sha256 of its plugin, name and version, validated params, the epoch's input 
 the keys and everything else needed to re-run an epoch go into the epoch's provenance and into ``gdt.lock``.
 
 Safety: the twin is built in a temporary folder beside the target and moved into place only when every epoch has
-been written, so a failure or an interrupt leaves an existing twin exactly as it was and no half-written one.
+been written, so a failure or an interrupt leaves an existing twin exactly as it was and no half-written one. The
+move exchanges the two folders in one step (see ``twin_store.swap``); what a killed run left behind is put back or
+cleaned up by the next run. ``GDT_FAULT`` (tests only) kills the process at a named step (``twin_store.faults``).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from twin_store import TwinStore, TwinStoreError, writer_lock
+from twin_store import RUN_LOCK_NAME, TwinStore, TwinStoreError, fault, writer_lock
 
 from ..errors import GdtError, StageError
 from ..names import UNITS
@@ -46,11 +48,11 @@ from ..types import Composite, Dataset, EpochInfo, Registration
 from ..workflow import load_workflow
 from .inputs import input_digests, read_input, relative_to_workflow
 from .plan import EpochPlan, RunPlan, StagePlan, plan_from_workflow
-from .staging import remove_stale_staging, staging_path, swap_into_place, write_json_atomic
+from .staging import check_overwritable, recover, staging_path, swap_into_place, write_json_atomic
 
 log = logging.getLogger("gdt.run")
 
-LOCK_NAME = "gdt.lock"
+LOCK_NAME = RUN_LOCK_NAME
 
 
 @dataclass
@@ -152,12 +154,14 @@ def execute_plan(plan: RunPlan, registry: Registry, target: Path, *, overwrite: 
 
 
 def _check_target(target: Path, overwrite: bool) -> None:
-    remove_stale_staging(target)
+    recover(target)
     if target.exists() and not overwrite:
         raise GdtError(f"twin {target} already exists; pass --overwrite to replace it (the old twin stays intact "
                        f"until the new one is complete)")
     if target.exists() and not (target / "twin.usda").is_file():
         raise GdtError(f"{target} exists and is not a twin (no twin.usda); refusing to replace it")
+    if target.exists():
+        check_overwritable(target)
 
 
 def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: Path,
@@ -187,7 +191,10 @@ def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: P
             result.epochs.append(summary)
             reporter.epoch_finished(summary)
             lock["epochs"].append(prov.lock_entry())
+        lock["layer_sha256"] = store.layer_digests()
         write_json_atomic(staging / LOCK_NAME, lock)
+        fault("lock-written")
+        fault("before-swap")
         swap_into_place(staging, target)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)

@@ -1,39 +1,44 @@
-"""Building a twin beside its target and moving it into place only when complete."""
+"""Building a twin beside its target and moving it into place only when complete (the swap itself, and recovery
+from a killed swap, are the twin store's: ``twin_store.swap``)."""
 
 from __future__ import annotations
 
 import json
 import logging
 import os
-import shutil
 from pathlib import Path
 from typing import Any
 
+from twin_store import foreign_files, partial_path, recover_leftovers, swap_into_place
+
+from ..errors import GdtError
+
 log = logging.getLogger("gdt.run")
+
+__all__ = ["check_overwritable", "recover", "staging_path", "swap_into_place", "write_json_atomic"]
 
 
 def staging_path(target: Path) -> Path:
     """Where this process builds the twin before it moves it to ``target``."""
-    return target.parent / f".{target.name}.partial-{os.getpid()}"
+    return partial_path(target)
 
 
-def remove_stale_staging(target: Path) -> None:
-    """Remove partial twins of runs that were killed (their process is gone); a live run holds the lock anyway."""
-    for stale in target.parent.glob(f".{target.name}.partial-*"):
-        pid = stale.name.rsplit("-", 1)[-1]
-        if pid.isdigit() and not _alive(int(pid)):
-            shutil.rmtree(stale, ignore_errors=True)
-            log.info("removed the partial twin of an interrupted run: %s", stale)
+def recover(target: Path) -> None:
+    """Put back or clean up what killed runs left beside ``target`` (call it holding the writer lock); log it."""
+    for action, message in recover_leftovers(target):
+        if action == "removed":
+            log.info(message)
+        else:
+            log.warning(message)
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+def check_overwritable(target: Path) -> None:
+    """Refuse to replace a twin folder that holds files the twin does not own (the user's own files)."""
+    foreign = foreign_files(target)
+    if foreign:
+        shown = ", ".join(foreign[:10]) + (f" and {len(foreign) - 10} more" if len(foreign) > 10 else "")
+        raise GdtError(f"refusing to overwrite twin {target}: it holds files the twin does not own ({shown}); "
+                       f"--overwrite replaces the whole folder, so move them out of it first")
 
 
 def write_json_atomic(path: Path, data: Any) -> None:
@@ -45,19 +50,3 @@ def write_json_atomic(path: Path, data: Any) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
-
-
-def swap_into_place(staging: Path, target: Path) -> None:
-    """Move the finished twin into place; an old twin is moved aside first and removed only after the move."""
-    old = None
-    if target.exists():
-        old = target.parent / f".{target.name}.old-{os.getpid()}"
-        os.replace(target, old)
-    try:
-        os.replace(staging, target)
-    except BaseException:
-        if old is not None:
-            os.replace(old, target)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)

@@ -124,7 +124,7 @@ def recover_leftovers(target: Path) -> list[tuple[str, str]]:
     """Put back, remove or report what killed writers left beside ``target``; call it holding the writer lock.
 
     Holding the lock, every leftover belongs to a dead writer. If the target is missing, the newest complete old
-    twin is put back (it is the last complete twin). Leftovers are removed only once the target exists; otherwise
+    twin is put back (it is the last complete twin). Leftovers are removed only once a twin is in place; otherwise
     they are reported. Returns (action, message) pairs, action one of "restored", "removed", "kept".
     """
     found = leftovers(target)
@@ -137,8 +137,9 @@ def recover_leftovers(target: Path) -> list[tuple[str, str]]:
             found.remove(old)
             done.append(("restored", f"put back the last complete twin {target} from {old.path} (a run was "
                                      f"killed while replacing it)"))
+    in_place = (target / ROOT_NAME).is_file()  # a folder without a root is not a twin: keep what could restore it
     for lo in found:
-        if target.exists():
+        if in_place:
             if lo.kind == "old":
                 remove_twin(lo.path)
             else:

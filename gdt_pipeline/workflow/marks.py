@@ -78,6 +78,9 @@ class BoundedLoader(yaml.SafeLoader):
             node = super().compose_node(parent, index)
         finally:
             self.depth -= 1
+        if alias and id(node) not in self.expanded:
+            # the anchored node is still being composed: the alias sits inside what it names, a cycle
+            raise LimitError(problem="an alias inside the node it names (a recursive structure)", problem_mark=mark)
         if not alias:
             children: list = []
             if isinstance(node, yaml.SequenceNode):
@@ -109,8 +112,9 @@ def parse_bounded(text: str, where: str) -> tuple[yaml.Node | None, Any]:
 
     Raises ``ValueError`` with ``where:line:col: ...`` on a syntax error or a document past the limits.
     """
-    loader = BoundedLoader(text)
+    loader = None
     try:
+        loader = BoundedLoader(text)  # the reader already refuses control characters here
         node = loader.get_single_node()
         data = loader.construct_document(node) if node is not None else None
     except yaml.MarkedYAMLError as exc:
@@ -123,7 +127,8 @@ def parse_bounded(text: str, where: str) -> tuple[yaml.Node | None, Any]:
     except RecursionError:
         raise ValueError(f"{where}: YAML error: nested too deeply") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
     return node, data
 
 

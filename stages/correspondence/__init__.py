@@ -20,6 +20,7 @@ from scipy.stats import chi2
 
 from gdt_pipeline import Correspondences, StageContext, StageSpec, hookimpl
 from gdt_pipeline.geometry import ReferenceIndex
+from gdt_pipeline.geometry.extent import check_scales
 
 from .directed import ReferenceMeshes, ReferencePoints, point_to_mesh, point_to_point, query_samples, to_correspondences
 
@@ -34,6 +35,7 @@ class NearestParams(BaseModel):
 
 
 def _nearest(ctx: StageContext) -> dict[str, Any]:
+    check_scales(ctx["recent"], ctx["reference"], "nearest")
     index = ReferenceIndex(ctx["reference"])
     out = []
     recent = ctx["recent"]
@@ -67,6 +69,7 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
               ) -> dict[str, Any]:
     p = ctx.params
     reference = ctx["reference"]
+    check_scales(ctx["recent"], reference, name)
     ref_pts = ReferencePoints(reference) if use_points else None
     ref_mesh = ReferenceMeshes(reference) if use_meshes else None
     if (ref_pts is None or ref_pts.empty) and (ref_mesh is None or ref_mesh.empty):

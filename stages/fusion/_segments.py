@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
 from gdt_pipeline import CompositeItem, Dataset, Segment
+from gdt_pipeline.geometry.extent import check_radius
 
 
 class PartParams(BaseModel):
@@ -75,6 +76,8 @@ def _labels(pos_a: np.ndarray, sig_a: np.ndarray, params: SegmentParams) -> np.n
     if radius is None:
         gap = tree.query(pos_a, k=2)[0][:, 1] if len(pos_a) > 1 else np.zeros(1)
         radius = max(3.0 * float(np.median(gap)), 1.5 * float(np.median(sig_a)), 1e-9)
+    # a units mistake makes the radius span the whole data: refuse before the pair list takes all memory
+    check_radius(tree, radius, "fusion", "grouping changed elements into segments (`segment_radius`)")
     pairs = tree.query_pairs(radius, output_type="ndarray")
     n = len(pos_a)
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \

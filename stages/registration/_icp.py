@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, f
 
 from gdt_pipeline import Composite, Dataset, Registration, StageContext
 from gdt_pipeline.geometry import sample_surface
+from gdt_pipeline.geometry.extent import check_samples, check_scales, expected_samples
 
 
 def check_rigid(t: np.ndarray, what: str) -> np.ndarray:
@@ -24,6 +25,8 @@ def check_rigid(t: np.ndarray, what: str) -> np.ndarray:
 
 def target_points(reference: Composite, spacing: float, rng: np.random.Generator) -> np.ndarray:
     """The twin's current visible geometry as points."""
+    count = sum(expected_samples(it.dataset, spacing, np.flatnonzero(it.visible)) for it in reference.items)
+    check_samples(count, spacing, "registration", "the twin")
     parts = [sample_surface(it.dataset, spacing, rng, np.flatnonzero(it.visible))
              for it in reference.items if it.visible.any()]
     if not parts:
@@ -33,7 +36,14 @@ def target_points(reference: Composite, spacing: float, rng: np.random.Generator
 
 def source_points(recent: list[Dataset], spacing: float, rng: np.random.Generator) -> np.ndarray:
     """The recent data as points."""
+    check_samples(sum(expected_samples(d, spacing) for d in recent), spacing, "registration", "the recent data")
     return np.concatenate([sample_surface(d, spacing, rng) for d in recent])
+
+
+def registration_inputs(ctx: StageContext, spacing: float, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """The twin and the recent data as points (target, source), after checking they are at the same scale."""
+    check_scales(ctx["recent"], ctx["reference"], method)
+    return target_points(ctx["reference"], spacing, ctx.rng), source_points(ctx["recent"], spacing, ctx.rng)
 
 
 def to_pcd(points: np.ndarray, origin: np.ndarray) -> Any:

@@ -9,7 +9,7 @@ from pydantic import Field, PositiveFloat, PositiveInt
 
 from gdt_pipeline import StageContext
 
-from ._icp import ScheduleParams, icp_schedule, registration_result, source_points, target_points, to_pcd
+from ._icp import ScheduleParams, icp_schedule, registration_inputs, registration_result, to_pcd
 
 
 class CoarseParams(ScheduleParams):
@@ -28,8 +28,7 @@ def coarse(ctx: StageContext) -> dict[str, Any]:
     p = ctx.params
     reg = o3d.pipelines.registration
     spacing = p.sample_spacing or p.voxels[-1] / 2
-    tgt = target_points(ctx["reference"], spacing, ctx.rng)
-    src = source_points(ctx["recent"], spacing, ctx.rng)
+    tgt, src = registration_inputs(ctx, spacing, "coarse")
     origin = tgt.mean(axis=0)
     v = p.feature_voxel
     feats = []

@@ -9,15 +9,14 @@ import numpy as np
 
 from gdt_pipeline import StageContext
 
-from ._icp import ScheduleParams, icp_schedule, registration_result, shifted, source_points, target_points
+from ._icp import ScheduleParams, icp_schedule, registration_inputs, registration_result, shifted
 
 
 def icp(ctx: StageContext, method: str) -> dict[str, Any]:
     """ICP of ``method`` (gicp or point_to_plane) from the initial transform, coarse to fine."""
     p = ctx.params
     spacing = p.sample_spacing or p.voxels[-1] / 2
-    tgt = target_points(ctx["reference"], spacing, ctx.rng)
-    src = source_points(ctx["recent"], spacing, ctx.rng)
+    tgt, src = registration_inputs(ctx, spacing, method)
     origin = tgt.mean(axis=0)
     init_world = np.eye(4) if p.initial is None else np.asarray(p.initial, dtype=np.float64)
     init_local = shifted(init_world, -origin)

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from gdt_pipeline import StageContext
 
-from ._icp import ScheduleParams, icp_schedule, registration_result, shifted, source_points, target_points
+from ._icp import ScheduleParams, icp_schedule, registration_inputs, registration_result, shifted
 
 
 class StableAreasParams(ScheduleParams):
@@ -28,8 +28,7 @@ def stable_areas(ctx: StageContext) -> dict[str, Any]:
     """ICP on the recent points in the box, trimmed round by round of those on changed geometry."""
     p = ctx.params
     spacing = p.sample_spacing or p.voxels[-1] / 2
-    tgt = target_points(ctx["reference"], spacing, ctx.rng)
-    src = source_points(ctx["recent"], spacing, ctx.rng)
+    tgt, src = registration_inputs(ctx, spacing, "stable_areas")
     if p.box is not None:
         lo, hi = np.asarray(p.box[0]), np.asarray(p.box[1])
         src = src[np.all((src >= lo) & (src <= hi), axis=1)]

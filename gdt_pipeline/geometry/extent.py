@@ -1,0 +1,90 @@
+"""Guards against a scale mistake turning a search quadratic: the recent data against the twin, and radius searches.
+
+A scan written in millimetres but read as metres (a wrong ``units``) is 1000× the size of the CAD; a radius in twin
+units that suits the CAD then holds every element of the scan, and an all-pairs search dies for lack of memory. These
+checks are cheap (bounding boxes, a dual-tree count that builds no pair list) and name the likely cause instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import StageError
+from ..types import Composite, Dataset
+
+MAX_SCALE_RATIO = 100.0  # recent vs reference bounding-box diagonal, either way
+MAX_MEAN_NEIGHBOURS = 200  # per element, in a radius search
+MIN_PAIRS_CHECKED = 1_000_000  # fewer pairs than this cost nothing, whatever their mean
+MAX_SAMPLES = 20_000_000  # surface samples of one side of a registration
+
+
+def diagonal(points: np.ndarray) -> float:
+    """The bounding-box diagonal of ``points`` (0 for fewer than two)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) < 2:
+        return 0.0
+    return float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+
+
+def _visible_positions(reference: Composite) -> np.ndarray:
+    parts = [it.dataset.element_positions()[it.visible] for it in reference.items if it.visible.any()]
+    return np.vstack(parts) if parts else np.zeros((0, 3))
+
+
+def check_scales(recent: Sequence[Dataset], reference: Composite | None, stage: str) -> None:
+    """Refuse an epoch whose recent data's bounding box is over ``MAX_SCALE_RATIO`` times larger or smaller than the
+    twin's (visible elements): almost always a wrong ``units``, which would make every later search meaningless."""
+    if reference is None or not recent:
+        return
+    d_ref = diagonal(_visible_positions(reference))
+    d_new = diagonal(np.vstack([ds.element_positions() for ds in recent]))
+    if d_ref <= 0 or d_new <= 0:
+        return
+    ratio = d_new / d_ref
+    if 1.0 / MAX_SCALE_RATIO <= ratio <= MAX_SCALE_RATIO:
+        return
+    names = ", ".join(ds.name for ds in recent)
+    size = f"{ratio:.3g}× the size" if ratio > 1 else f"1/{1 / ratio:.3g} of the size"
+    raise StageError(f"{stage}: the scan is {size} of the CAD (the recent data {names} spans a bounding-box "
+                     f"diagonal of {d_new:.4g}, the twin {d_ref:.4g}, limit {MAX_SCALE_RATIO:g}× either way): check "
+                     f"`units` of the inputs and of the workflow (a file in mm read as m is 1000× too large)")
+
+
+def check_radius(tree: cKDTree, radius: float, stage: str, what: str) -> None:
+    """Refuse a radius search that would hold more than ``MAX_MEAN_NEIGHBOURS`` elements per element on average (and
+    over ``MIN_PAIRS_CHECKED`` pairs in all), before any pair list is built."""
+    n = int(tree.n)
+    if n < 2 or n * (n - 1) / 2 <= MIN_PAIRS_CHECKED:
+        return
+    # ordered pairs within the radius, each element with itself included; a dual-tree count builds no list
+    pairs = (int(tree.count_neighbors(tree, radius)) - n) / 2
+    mean = 2.0 * pairs / n
+    if pairs <= MIN_PAIRS_CHECKED or mean <= MAX_MEAN_NEIGHBOURS:
+        return
+    extent = diagonal(tree.data)
+    raise StageError(f"{stage}: {what} of radius {radius:.4g} would join {mean:.0f} of the {n} elements to each on "
+                     f"average (limit {MAX_MEAN_NEIGHBOURS}); the data's extent (bounding-box diagonal) is "
+                     f"{extent:.4g}, {extent / radius:.3g}× the radius. Likely cause: the data is not at the scale the "
+                     f"radius assumes (check `units` of the inputs: a scan read in the wrong units is 1000× off), "
+                     f"or the radius is set too large")
+
+
+def expected_samples(ds: Dataset, spacing: float, elements: np.ndarray | None = None) -> float:
+    """About how many points ``sample_surface`` returns for ``ds`` at ``spacing`` (its points, or area/spacing²)."""
+    if ds.faces is None:
+        return float(ds.n_elements if elements is None else len(elements))
+    faces = ds.faces if elements is None else ds.faces[elements]
+    tri = ds.points[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return float(area.sum() / spacing**2 + np.count_nonzero(area > 0))
+
+
+def check_samples(count: float, spacing: float, stage: str, what: str) -> None:
+    """Refuse sampling more than ``MAX_SAMPLES`` points: the spacing is far below the data's scale."""
+    if count > MAX_SAMPLES:
+        raise StageError(f"{stage}: sampling {what} at spacing {spacing:.4g} would take about {count:.3g} points "
+                         f"(limit {MAX_SAMPLES:,}): the spacing (or the finest voxel) is far below the data's scale; "
+                         f"check `units` of the inputs, or set `sample_spacing` / `voxels` to suit the data")

@@ -1,0 +1,1 @@
+this is not a LAS file at all, just text with a .las name

@@ -47,7 +47,7 @@ def check_scales(recent: Sequence[Dataset], reference: Composite | None, stage: 
     if 1.0 / MAX_SCALE_RATIO <= ratio <= MAX_SCALE_RATIO:
         return
     names = ", ".join(ds.name for ds in recent)
-    size = f"{ratio:.3g}× the size" if ratio > 1 else f"1/{1 / ratio:.3g} of the size"
+    size = f"{ratio:,.0f}× the size" if ratio > 1 else f"1/{1 / ratio:,.0f} of the size"
     raise StageError(f"{stage}: the scan is {size} of the CAD (the recent data {names} spans a bounding-box "
                      f"diagonal of {d_new:.4g}, the twin {d_ref:.4g}, limit {MAX_SCALE_RATIO:g}× either way): check "
                      f"`units` of the inputs and of the workflow (a file in mm read as m is 1000× too large)")

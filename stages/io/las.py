@@ -1,0 +1,155 @@
+"""LAS/LAZ through laspy, with the header checked first: laspy allocates what the header's point count asks for, so
+a few bytes of garbage after a ``LASF`` signature once took gigabytes and minutes before failing.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from gdt_pipeline import InputError
+
+# LAZ compresses point records about 5-10×; more than this many records per file byte cannot be real.
+LAZ_MAX_RATIO = 64
+# The shortest record of each point format 0-10 (ASPRS LAS 1.4 R15, table of point data record formats).
+_MIN_RECORD = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)
+_VLR_HEADER, _EVLR_HEADER = 54, 60
+
+
+def _failed(path: Path, what: str, exc: BaseException) -> InputError:
+    """laspy's failure as an error naming the file; lazrs (Rust) reports a panic as pyo3's PanicException, a
+    BaseException that ``except Exception`` misses, so it is caught here and anything else non-Exception re-raised."""
+    if not isinstance(exc, Exception) and type(exc).__name__ != "PanicException":
+        raise exc
+    return InputError(f"{path}: cannot read {what} ({type(exc).__name__}: {str(exc)[:200]})")
+
+
+def _field(data: bytes, fmt: str, offset: int) -> int | float:
+    return struct.unpack_from("<" + fmt, data, offset)[0]
+
+
+def _check_public_header(path: Path, data: bytes, size: int) -> None:
+    """The public header block's fields that decide what laspy allocates, checked before laspy sees the file.
+
+    laspy trusts the VLR and EVLR counts and offsets: a garbage header after a valid ``LASF`` signature once made
+    ``laspy.open`` take 60 s and gigabytes before failing, so each is bounded by the bytes that can hold it.
+    """
+    if len(data) < 227 or data[:4] != b"LASF":
+        raise InputError(f"{path}: not a LAS file ({size} bytes; a LAS header is 227+ bytes starting 'LASF')")
+    major, minor = data[24], data[25]
+    header_size, offset, n_vlrs = _field(data, "H", 94), _field(data, "I", 96), _field(data, "I", 100)
+    if major != 1 or minor > 4:
+        raise InputError(f"{path}: LAS header (byte 24) version {major}.{minor} (expected 1.0-1.4)")
+    if not 227 <= header_size <= offset <= size:
+        raise InputError(f"{path}: LAS header size (byte 94) {header_size} and offset to point data (byte 96) "
+                         f"{offset} do not fit a {size}-byte file")
+    if n_vlrs * _VLR_HEADER > offset - header_size:
+        raise InputError(f"{path}: LAS header (byte 100) declares {n_vlrs} VLRs, at least {n_vlrs * _VLR_HEADER} "
+                         f"bytes, but only {offset - header_size} bytes lie between the header and the points")
+    fmt_id, record = data[104] & 0x3F, _field(data, "H", 105)
+    if fmt_id > 10 or record < _MIN_RECORD[fmt_id]:
+        raise InputError(f"{path}: LAS header (byte 104) point format {fmt_id} with {record}-byte records is not "
+                         f"a LAS point format (0-10, record at least the format's size)")
+    if minor >= 4 and len(data) >= 247:
+        start, n_evlrs = _field(data, "Q", 235), _field(data, "I", 243)
+        if n_evlrs and (start > size or n_evlrs * _EVLR_HEADER > size - start):
+            raise InputError(f"{path}: LAS header (byte 235) declares {n_evlrs} EVLRs from byte {start}, the file "
+                             f"is {size} bytes")
+
+
+def _header(path: Path) -> Any:  # laspy.LasHeader, imported lazily
+    import laspy
+
+    try:
+        with laspy.open(str(path)) as reader:
+            return reader.header
+    except BaseException as exc:  # lazrs panics are BaseExceptions: see _failed
+        raise _failed(path, "the LAS/LAZ header", exc) from exc
+
+
+def _laszip_vlr(data: bytes, n_vlrs: int) -> bytes | None:
+    """The LASzip VLR's payload among the VLRs ``data`` holds (None when there is none)."""
+    pos = 0
+    for _ in range(n_vlrs):
+        if pos + _VLR_HEADER > len(data):
+            return None
+        length = _field(data, "H", pos + 20)
+        if data[pos + 2:pos + 16] == b"laszip encoded" and _field(data, "H", pos + 18) == 22204:
+            return data[pos + _VLR_HEADER:pos + _VLR_HEADER + length]
+        pos += _VLR_HEADER + length
+    return None
+
+
+def _check_laz(path: Path, fh: BinaryIO, count: int, size: int) -> None:
+    """The LASzip items and chunk table, bounded by the file: lazrs allocates what they declare and aborts the
+    process (not an exception) when that fails, so a flipped byte there would end the run."""
+    header = fh.read(375)
+    header_size, offset, n_vlrs, record = (_field(header, "H", 94), _field(header, "I", 96),
+                                           _field(header, "I", 100), _field(header, "H", 105))
+    fh.seek(header_size)
+    vlr = _laszip_vlr(fh.read(offset - header_size), n_vlrs)
+    if vlr is None or len(vlr) < 34 or len(vlr) < 34 + 6 * _field(vlr, "H", 32):
+        raise InputError(f"{path}: compressed points but no readable LASzip VLR (bytes {header_size}-{offset})")
+    n_items = _field(vlr, "H", 32)
+    item_bytes = sum(_field(vlr, "H", 34 + 6 * k + 2) for k in range(n_items))
+    if item_bytes != record:
+        raise InputError(f"{path}: LASzip VLR items ({n_items}) add up to {item_bytes} bytes, the header's point "
+                         f"records are {record} bytes")
+    chunk_size = _field(vlr, "I", 12)
+    if chunk_size != 0xFFFFFFFF and chunk_size * record > max(LAZ_MAX_RATIO * size, 1 << 24):
+        raise InputError(f"{path}: LASzip VLR (byte {header_size + _VLR_HEADER + 12}) declares chunks of {chunk_size} "
+                         f"points × {record} bytes, more than a {size}-byte file can hold")
+    fh.seek(offset)
+    table_at = _field(fh.read(8).ljust(8, b"\xff"), "q", 0)
+    if table_at == -1:
+        return  # no chunk table written: lazrs reads the chunks sequentially
+    fh.seek(table_at if 0 <= table_at <= size - 8 else 0)
+    version, chunks = struct.unpack("<II", fh.read(8)) if 0 <= table_at <= size - 8 else (0, 0)
+    if not offset + 8 <= table_at <= size - 8 or version != 0 or chunks > min(count + 1, size):
+        raise InputError(f"{path}: LAZ chunk table (offset at byte {offset}) at byte {table_at} declares version "
+                         f"{version} and {chunks} chunks, for {count} points in a {size}-byte file")
+
+
+def check_las_header(path: Path) -> int:
+    """The point count the header declares, checked against the file size (and the scales usable)."""
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        _check_public_header(path, fh.read(375), size)
+    header = _header(path)
+    count, record = int(header.point_count), int(header.point_format.size)
+    offset = int(header.offset_to_point_data)
+    scales = np.asarray(header.scales, dtype=np.float64)
+    if not (np.isfinite(scales).all() and (scales != 0).all()) or not np.isfinite(header.offsets).all():
+        raise InputError(f"{path}: LAS header scale {scales.tolist()} / offset {list(header.offsets)} is not usable "
+                         f"(zero or not finite)")
+    compressed = bool(getattr(header, "are_points_compressed", False)) or path.suffix.lower() == ".laz"
+    if not compressed and offset + count * record > size:
+        raise InputError(f"{path}: LAS header declares {count} points × {record} bytes + {offset} bytes offset to the "
+                         f"point data = {offset + count * record} bytes, but the file is {size} bytes")
+    if compressed and count > LAZ_MAX_RATIO * size / max(record, 1):
+        raise InputError(f"{path}: LAZ header declares {count} points of {record} bytes in a {size}-byte file (more "
+                         f"than {LAZ_MAX_RATIO}× compression is impossible): corrupt header")
+    if compressed:
+        with open(path, "rb") as fh:
+            _check_laz(path, fh, count, size)
+    return count
+
+
+def read_las_points(path: Path, classes: list[int] | None) -> np.ndarray:
+    """(N,3) scaled coordinates of a LAS/LAZ (optionally only some ASPRS classes), header checked first."""
+    import laspy
+
+    count = check_las_header(path)
+    try:
+        las = laspy.read(str(path))
+    except BaseException as exc:  # lazrs panics are BaseExceptions: see _failed
+        raise _failed(path, "LAS/LAZ", exc) from exc
+    if len(las.points) != count:
+        raise InputError(f"{path}: the LAS header declares {count} points, laspy read {len(las.points)}")
+    pts = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64)
+    if classes is not None:
+        pts = pts[np.isin(np.asarray(las.classification), classes)]
+    return pts

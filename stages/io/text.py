@@ -1,0 +1,95 @@
+"""Numbers from text files, checked: every token must parse as a number and the reader is told the line it came from.
+
+Python's and numpy's float parsers accept more than a number (``1_000``), and C's ``sscanf`` that Open3D uses skips
+or zero-fills what it cannot parse, so the text readers check the tokens themselves before anything becomes data.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from gdt_pipeline import InputError
+
+# A number token holds only these characters (letters for inf/nan/infinity); anything else is garbage. The finer
+# check (``1.2.3``, ``e``) is the float parser's.
+_NOT_NUMERIC = re.compile(rb"[^0-9eE+\-.\sinfatyINFATY]")
+
+
+@dataclass(frozen=True)
+class Rows:
+    """Non-blank lines of a text block with their 1-based line numbers in the file."""
+
+    lines: list[bytes]
+    numbers: list[int]
+
+    @classmethod
+    def of(cls, text: bytes, first_line: int = 1) -> Rows:
+        """The non-blank lines of ``text``, numbered from ``first_line``."""
+        lines, numbers = [], []
+        for i, line in enumerate(text.split(b"\n")):
+            if line.strip():
+                lines.append(line)
+                numbers.append(first_line + i)
+        return cls(lines, numbers)
+
+    def take(self, start: int, stop: int) -> Rows:
+        """Rows ``start`` to ``stop`` (indices into the non-blank lines)."""
+        return Rows(self.lines[start:stop], self.numbers[start:stop])
+
+
+def _bad_token(rows: Rows, path: object, what: str) -> InputError:
+    """The first token of ``rows`` that is not a number, as an error naming its line."""
+    for line, number in zip(rows.lines, rows.numbers, strict=True):
+        for tok in line.split():
+            try:
+                if _NOT_NUMERIC.search(tok):
+                    raise ValueError(tok)
+                float(tok)
+            except ValueError:
+                shown = tok[:40].decode("latin-1")
+                return InputError(f"{path}: line {number} ({what}): {shown!r} is not a number")
+    return InputError(f"{path}: {what}: a token is not a number")
+
+
+def to_floats(rows: Rows, path: object, what: str) -> np.ndarray:
+    """All tokens of ``rows`` as float64 (flat), or an error naming the line and the token that is not a number."""
+    block = b" ".join(rows.lines)
+    if _NOT_NUMERIC.search(block):
+        raise _bad_token(rows, path, what)
+    try:
+        return np.array(block.split()).astype(np.float64) if block.strip() else np.zeros(0)
+    except ValueError:
+        raise _bad_token(rows, path, what) from None
+
+
+def table(rows: Rows, path: object, what: str, *, columns: int | None = None, min_columns: int = 1) -> np.ndarray:
+    """Rows of the same token count as a float64 matrix; a row with another count is named by its line."""
+    counts = [len(line.split()) for line in rows.lines]
+    width = columns if columns is not None else (counts[0] if counts else min_columns)
+    if width < min_columns:
+        raise InputError(f"{path}: line {rows.numbers[0]} ({what}): {width} values, at least {min_columns} needed")
+    for count, number in zip(counts, rows.numbers, strict=True):
+        if count != width:
+            raise InputError(f"{path}: line {number} ({what}): expected {width} values, found {count}")
+    return to_floats(rows, path, what).reshape(len(rows.lines), width)
+
+
+def check_finite(xyz: np.ndarray, rows: Rows, path: object, what: str) -> None:
+    """Refuse NaN/inf coordinates, naming the first bad row's line."""
+    bad = ~np.isfinite(xyz).all(axis=1)
+    if bad.any():
+        first = int(np.argmax(bad))
+        raise InputError(f"{path}: line {rows.numbers[first]} ({what} row {first + 1}): coordinate "
+                         f"{xyz[first].tolist()} is not finite ({int(bad.sum())} such rows)")
+
+
+def check_integral(values: np.ndarray, rows: Rows, path: object, what: str) -> np.ndarray:
+    """Values that must be integers (counts, indices) as int64, or an error naming the first line that is not."""
+    ok = np.isfinite(values) & (values == np.round(values)) & (np.abs(values) < 2**62)
+    if not ok.all():
+        first = int(np.argmax(~ok.reshape(len(values), -1).all(axis=1))) if values.ndim > 1 else int(np.argmax(~ok))
+        raise InputError(f"{path}: line {rows.numbers[first]} ({what}): {values[first].tolist()} is not an integer")
+    return values.astype(np.int64)

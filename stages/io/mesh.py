@@ -16,6 +16,7 @@ import numpy as np
 from gdt_pipeline import Dataset, InputError, ReadRequest
 
 from .ply import read_ply
+from .text import nonfinite
 
 log = logging.getLogger(__name__)
 # Relative to its longest edge squared, a facet's doubled area below this is zero in float64 arithmetic.
@@ -79,6 +80,30 @@ def check_glb(path: Path) -> None:
         raise InputError(f"{path}: GLB header (byte 8) declares {length} bytes, the file is {size} bytes")
 
 
+def obj_face_problem(path: Path) -> str | None:
+    """The first OBJ ``f`` line trimesh cannot use (an index that is not an integer or out of range), if any."""
+    with open(path, "rb") as fh:
+        lines = fh.read().split(b"\n")
+    total = sum(1 for line in lines if line.lstrip().startswith((b"v ", b"v\t")))
+    seen = 0
+    for number, line in enumerate(lines, start=1):
+        words = line.split()
+        if words[:1] == [b"v"]:
+            seen += 1
+        if words[:1] != [b"f"]:
+            continue
+        if len(words) < 4:
+            return f"line {number}: face with {len(words) - 1} vertices (a face needs at least 3)"
+        for tok in words[1:]:
+            try:
+                k = int(tok.split(b"/")[0])
+            except ValueError:
+                return f"line {number}: face index {tok[:20].decode('latin-1')!r} is not an integer"
+            if k == 0 or k > total or k < -seen:
+                return f"line {number}: face index {k} is out of range (the file has {total} vertices)"
+    return None
+
+
 def check_triangles(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """Face indices within [0, n_vertices) and finite vertices, naming the first bad row."""
     out = (faces < 0) | (faces >= len(vertices))
@@ -89,8 +114,7 @@ def check_triangles(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None
     bad = ~np.isfinite(vertices).all(axis=1)
     if bad.any():
         row = int(np.argmax(bad))
-        raise InputError(f"{path}: vertex row {row + 1}: coordinate {vertices[row].tolist()} is not finite "
-                         f"({int(bad.sum())} of {len(vertices)} vertices)")
+        raise nonfinite(path, vertices, bad, f"vertex row {row + 1}")
 
 
 def drop_degenerate(path: Path, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int]:
@@ -138,7 +162,8 @@ def read_mesh(req: ReadRequest) -> Dataset:
     try:
         mesh = trimesh.load(str(path), force="mesh", process=process)
     except Exception as exc:
-        raise InputError(f"{path}: cannot read as a mesh ({type(exc).__name__}: {exc})") from exc
+        problem = obj_face_problem(path) if path.suffix.lower() == ".obj" else None
+        raise InputError(f"{path}: {problem or 'cannot read as a mesh'} ({type(exc).__name__}: {exc})") from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(f"{path}: no triangles found (is it a mesh? set `kind: points` for a point cloud)")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
@@ -146,8 +171,9 @@ def read_mesh(req: ReadRequest) -> Dataset:
     if not process and n_vertices is not None and len(vertices) != n_vertices:
         raise InputError(f"{path}: the file declares {n_vertices} vertices, trimesh read {len(vertices)}")
     if n_faces is not None and len(faces) < n_faces and not process:
+        problem = obj_face_problem(path) if path.suffix.lower() == ".obj" else None
         raise InputError(f"{path}: the file declares {n_faces} faces ('f' lines, facets or header count), "
-                         f"trimesh read only {len(faces)}")
+                         f"trimesh read only {len(faces)}" + (f"; {problem}" if problem else ""))
     check_triangles(path, vertices, faces)
     faces, dropped = drop_degenerate(path, vertices, faces)
     if dropped:

@@ -16,7 +16,7 @@ import numpy as np
 from gdt_pipeline import InputError
 
 from .ply_header import Element, Header, Prop, read_header
-from .text import Rows, check_integral, table, to_floats
+from .text import Rows, check_integral, nonfinite, table, to_floats
 
 _STRUCT = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I", "f4": "f", "f8": "d"}
 FACE_LISTS = ("vertex_indices", "vertex_index")
@@ -257,8 +257,7 @@ def _vertices(path: Path, data: ElementData) -> np.ndarray:
     bad = ~np.isfinite(xyz).all(axis=1)
     if bad.any():
         first = int(np.argmax(bad))
-        raise InputError(f"{path}: {data.place(first)}: coordinate {xyz[first].tolist()} is not finite "
-                         f"({int(bad.sum())} of {len(xyz)} vertices)")
+        raise nonfinite(path, xyz, bad, data.place(first))
     return xyz
 
 

@@ -77,13 +77,20 @@ def table(rows: Rows, path: object, what: str, *, columns: int | None = None, mi
     return to_floats(rows, path, what).reshape(len(rows.lines), width)
 
 
+def nonfinite(path: object, xyz: np.ndarray, bad: np.ndarray, place: str) -> InputError:
+    """The error for rows with NaN/inf coordinates: how many, the first rows (from 0, as the engine counts) and
+    where the first one is in the file."""
+    first = np.flatnonzero(bad)[:5].tolist()
+    return InputError(f"{path}: {int(bad.sum())} of {len(xyz)} coordinates are NaN or infinite (first rows {first}, "
+                      f"counting from 0); the first is at {place}: {xyz[first[0]].tolist()}")
+
+
 def check_finite(xyz: np.ndarray, rows: Rows, path: object, what: str) -> None:
     """Refuse NaN/inf coordinates, naming the first bad row's line."""
     bad = ~np.isfinite(xyz).all(axis=1)
     if bad.any():
         first = int(np.argmax(bad))
-        raise InputError(f"{path}: line {rows.numbers[first]} ({what} row {first + 1}): coordinate "
-                         f"{xyz[first].tolist()} is not finite ({int(bad.sum())} such rows)")
+        raise nonfinite(path, xyz, bad, f"line {rows.numbers[first]} ({what} {first + 1})")
 
 
 def check_integral(values: np.ndarray, rows: Rows, path: object, what: str) -> np.ndarray:

@@ -86,7 +86,7 @@ def _property(words: list[str], path: Path, number: int) -> Prop:
 
 
 def _format(words: list[str], path: Path, number: int) -> str:
-    if len(words) != 3 or words[0] != "format" or words[1] not in FORMATS:
+    if len(words) != 3 or words[0] != "format" or words[1] not in FORMATS or words[2] not in ("1.0", "1"):
         raise InputError(f"{path}: header line {number}: expected 'format ascii|binary_little_endian|"
                          f"binary_big_endian 1.0', found {' '.join(words)!r}")
     return words[1]
@@ -125,6 +125,10 @@ def read_header(path: Path) -> Header:
             raise InputError(f"{path}: header line {number}: unexpected {line.strip()[:60]!r}")
     if not fmt:
         raise InputError(f"{path}: the header has no 'format' line")
+    empty = next((e for e in elements if not e.props and e.count), None)
+    if empty is not None:
+        raise InputError(f"{path}: header line {empty.line}: element {empty.name!r} has {empty.count} rows but no "
+                         f"properties")
     return Header(fmt, FORMATS[fmt], elements, end.end(), len(lines) + 1)
 
 

@@ -16,6 +16,8 @@ from .text import Rows, check_finite, check_integral, table
 
 # Columns of the XYZ family (Open3D reads the first three as the coordinates).
 TEXT_COLUMNS = {".xyz": 3, ".xyzn": 6, ".xyzrgb": 6}
+_PCD_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+_NORMALS = {"normal_x", "normal_y", "normal_z"}
 _PCD_TYPES = {("F", 4), ("F", 8), ("I", 1), ("I", 2), ("I", 4), ("I", 8), ("U", 1), ("U", 2), ("U", 4), ("U", 8)}
 
 
@@ -62,6 +64,9 @@ def _pcd_header(path: Path) -> tuple[dict[str, list[str]], int, int]:
         line = raw.decode("latin-1").split("#", 1)[0].split()
         if not line:
             continue
+        if line[0].upper() not in _PCD_KEYS or line[0].upper() in fields:
+            raise InputError(f"{path}: PCD header line {number}: unexpected {raw[:40].decode('latin-1')!r} (the "
+                             f"header holds each of {' '.join(_PCD_KEYS)} once)")
         fields[line[0].upper()] = line[1:]
         if line[0].upper() == "DATA":
             return fields, offset, number + 1
@@ -80,6 +85,10 @@ def _pcd_layout(fields: dict[str, list[str]], path: Path) -> tuple[int, int, int
     names = fields.get("FIELDS", [])
     if not {"x", "y", "z"} <= set(names):
         raise InputError(f"{path}: PCD header field FIELDS is {names}, it needs x y z")
+    # Open3D reads past its buffers (a segfault) when only some of the normal fields are there.
+    if len(set(names)) != len(names) or 0 < len(_NORMALS & set(names)) < 3:
+        raise InputError(f"{path}: PCD header field FIELDS is {names}: names must be unique and normal_x normal_y "
+                         f"normal_z come together")
     size = _pcd_ints(fields, "SIZE", path)
     count = _pcd_ints(fields, "COUNT", path, ["1"] * len(names))
     types = fields.get("TYPE", [])

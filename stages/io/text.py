@@ -15,6 +15,7 @@ from gdt_pipeline import InputError
 
 # A number token holds only these characters (letters for inf/nan/infinity); anything else is garbage. The finer
 # check (``1.2.3``, ``e``) is the float parser's.
+MAX_TOKEN = 64  # characters: no number a writer prints is longer
 _NOT_NUMERIC = re.compile(rb"[^0-9eE+\-.\sinfatyINFATY]")
 
 
@@ -59,8 +60,15 @@ def to_floats(rows: Rows, path: object, what: str) -> np.ndarray:
     block = b" ".join(rows.lines)
     if _NOT_NUMERIC.search(block):
         raise _bad_token(rows, path, what)
+    tokens = block.split()
+    # numpy sizes a bytes array by its longest token: one 5 MB token among a million would ask for terabytes.
+    longest = max(map(len, tokens), default=0)
+    if longest > MAX_TOKEN:
+        k = next(i for i, t in enumerate(tokens) if len(t) == longest)
+        line = next(n for line, n in zip(rows.lines, rows.numbers, strict=True) if tokens[k] in line)
+        raise InputError(f"{path}: line {line} ({what}): a token of {longest} characters is not a number")
     try:
-        return np.array(block.split()).astype(np.float64) if block.strip() else np.zeros(0)
+        return np.array(tokens).astype(np.float64) if tokens else np.zeros(0)
     except ValueError:
         raise _bad_token(rows, path, what) from None
 

@@ -88,7 +88,7 @@ def gdt_readers() -> list[ReaderSpec]:
                    description="Triangle meshes through trimesh (faces are the elements)."),
         ReaderSpec(name="open3d_points", version=VERSION, params=PointsParams, read=_read_points,
                    accepts=_accepts_points, extensions=(".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts"),
-                   description="Point clouds through Open3D."),
+                   description="Point clouds: PLY and XYZ/XYZN/XYZRGB/PTS read and checked here, PCD through Open3D."),
         ReaderSpec(name="laspy_points", version=VERSION, params=LasParams, read=_read_las, extensions=(".las", ".laz"),
                    description="LAS/LAZ LiDAR point clouds through laspy (lazrs backend)."),
     ]

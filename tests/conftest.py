@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
+import tempfile
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -29,6 +32,28 @@ def run_gdt(*args: str, cwd: Path | None = None, env: dict | None = None) -> sub
     """Run the installed `gdt` command and capture its output."""
     full_env = {**os.environ, "COLUMNS": "200", **(env or {})}
     return subprocess.run([str(GDT), *args], cwd=cwd, env=full_env, capture_output=True, text=True, timeout=300)
+
+
+@dataclass
+class Metered:
+    """A command's exit code, wall time, peak RSS (its own, see tests/child_meter.py) and why it was killed."""
+
+    returncode: int
+    seconds: float
+    peak_mb: float
+    killed: str
+
+
+def run_metered(cmd: list[str], *, cwd: Path | None = None, env: dict | None = None, stdout: Any = None,
+                stderr: Any = None, kill_seconds: float = 600.0, kill_rss_mb: float = 8192.0) -> Metered:
+    """Run ``cmd`` through tests/child_meter.py so that its peak RSS is its own, not the pytest process's."""
+    with tempfile.TemporaryDirectory() as tmp:
+        result = Path(tmp) / "result.json"
+        subprocess.run([sys.executable, str(Path(__file__).with_name("child_meter.py")), str(result),
+                        str(kill_seconds), str(kill_rss_mb), *cmd], cwd=cwd, env=env, stdout=stdout, stderr=stderr,
+                       stdin=subprocess.DEVNULL, check=True)
+        data = json.loads(result.read_text())
+    return Metered(data["returncode"], data["seconds"], data["peak_mb"], data["killed"])
 
 
 def write_points_ply(path: Path, points: np.ndarray) -> None:

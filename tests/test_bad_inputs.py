@@ -15,7 +15,6 @@ import os
 import re
 import shutil
 import subprocess
-import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -26,7 +25,7 @@ import numpy as np
 import pytest
 import yaml
 
-from .conftest import GDT, make_cube_scene, write_cube_workflow
+from .conftest import GDT, make_cube_scene, run_metered, write_cube_workflow
 
 CORPUS = Path(__file__).resolve().parent / "bad_inputs"
 FILES = CORPUS / "files"
@@ -252,43 +251,15 @@ class Outcome:
     present_after: dict[str, bool] | None = None
 
 
-def _rss_mb(pid: int) -> float:
-    try:
-        with open(f"/proc/{pid}/status", encoding="ascii") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return 0.0
-
-
 def run_measured(args: list[str], cwd: Path, small: bool) -> tuple[int, float, float, str, str]:
-    """Run ``gdt args`` in ``cwd``: exit code, seconds, peak RSS (MB, from wait4), output, and why it was killed."""
+    """Run ``gdt args`` in ``cwd``: exit code, seconds, its own peak RSS (MB), output, and why it was killed."""
     env = {**os.environ, "COLUMNS": "200", "OMP_NUM_THREADS": "1"}
     out_path, err_path = cwd.parent / f"{cwd.name}.stdout", cwd.parent / f"{cwd.name}.stderr"
-    killed = ""
     with open(out_path, "wb") as out, open(err_path, "wb") as err:
-        t0 = time.perf_counter()
-        proc = subprocess.Popen([str(GDT), *args], cwd=cwd, env=env, stdout=out, stderr=err,
-                                stdin=subprocess.DEVNULL)
-        while True:
-            # Reap with WNOHANG in this thread, so the pid polled is never a reused one.
-            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-            if pid:
-                break
-            elapsed = time.perf_counter() - t0
-            if not killed and elapsed > KILL_SECONDS[small]:
-                killed = f"killed after {elapsed:.0f} s"
-                proc.kill()
-            elif not killed and _rss_mb(proc.pid) > KILL_RSS_MB:
-                killed = f"killed above {KILL_RSS_MB} MB RSS"
-                proc.kill()
-            time.sleep(0.05)
-        seconds = time.perf_counter() - t0
-    proc.returncode = os.waitstatus_to_exitcode(status)
+        m = run_metered([str(GDT), *args], cwd=cwd, env=env, stdout=out, stderr=err,
+                        kill_seconds=KILL_SECONDS[small], kill_rss_mb=KILL_RSS_MB)
     output = (out_path.read_text(errors="replace") + "\n" + err_path.read_text(errors="replace"))
-    return proc.returncode, seconds, usage.ru_maxrss / 1024, output, killed
+    return m.returncode, m.seconds, m.peak_mb, output, m.killed
 
 
 def run_case(case: dict[str, Any], root: Path, bases: dict[str, Path]) -> Outcome:

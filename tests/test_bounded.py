@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import tempfile
 import time
 import tracemalloc
 from dataclasses import dataclass
@@ -18,7 +19,7 @@ from gdt_pipeline.errors import StageError
 from gdt_pipeline.geometry.extent import check_radius
 from gdt_pipeline.workflow.marks import parse_bounded
 
-from .conftest import GDT, make_cube_scene, write_cube_workflow
+from .conftest import GDT, make_cube_scene, run_metered, write_cube_workflow
 
 BOMB = "l0: &l0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
     f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 9)}]\n" for i in range(1, 10))
@@ -35,18 +36,13 @@ class Measured:
 
 
 def _gdt(*args: str, cwd: Path | None = None) -> Measured:
-    """Run `gdt` and measure its wall time and peak RSS (ru_maxrss, KiB on Linux) through os.wait4."""
+    """Run `gdt` and measure its wall time and its own peak RSS (tests/child_meter.py)."""
     env = {**os.environ, "COLUMNS": "200"}
-    t0 = time.perf_counter()
-    proc = subprocess.Popen([str(GDT), *args], cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
-    out = proc.stdout.read() if proc.stdout else ""
-    _, status, usage = os.wait4(proc.pid, 0)
-    seconds = time.perf_counter() - t0
-    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: keep Popen from waiting again
-    if proc.stdout:
-        proc.stdout.close()
-    return Measured(proc.returncode, out, seconds, usage.ru_maxrss / 1024)
+    with tempfile.TemporaryFile() as fh:
+        m = run_metered([str(GDT), *args], cwd=cwd, env=env, stdout=fh, stderr=subprocess.STDOUT)
+        fh.seek(0)
+        out = fh.read().decode(errors="replace")
+    return Measured(m.returncode, out, m.seconds, m.peak_mb)
 
 
 def test_alias_bomb_is_refused_in_the_loader_at_once() -> None:

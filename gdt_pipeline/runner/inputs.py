@@ -43,6 +43,14 @@ def check_dataset(ds: Dataset, where: str) -> None:
                          f"(first rows {first}); clean the file or remove those points")
 
 
+def _without_path(message: str, path: Path) -> str:
+    """A reader's message without its leading file path, which ``where`` already names."""
+    for prefix in (f"{path}: ", f"{path.resolve()}: "):
+        if message.startswith(prefix):
+            return message[len(prefix):]
+    return message
+
+
 def _check_file(path: Path, where: str) -> None:
     """Name what is wrong with the path itself before any reader is asked."""
     if path.is_dir():
@@ -72,8 +80,12 @@ def read_dataset(path: Path, registry: Registry, *, name: str, role: str = "as-i
     try:
         ds = spec.read(request)
     except GdtError as exc:
-        raise InputError(f"{where}: {exc}") from exc
-    except Exception as exc:
+        raise InputError(f"{where}: {_without_path(str(exc), path)}") from exc
+    except (KeyboardInterrupt, SystemExit, GeneratorExit, MemoryError):
+        raise
+    except BaseException as exc:
+        # BaseException, not Exception: parsers written in Rust (lazrs through pyo3) raise a PanicException that
+        # derives from BaseException, and a file that panics a parser is still bad input, not a bug of ours.
         raise InputError(f"{where}: reader {spec.name!r} failed: {type(exc).__name__}: {exc}") from exc
     if not isinstance(ds, Dataset):
         raise StageError(f"{where}: reader {spec.name!r} returned {type(ds).__name__}, not a Dataset")

@@ -56,6 +56,17 @@ def run_metered(cmd: list[str], *, cwd: Path | None = None, env: dict | None = N
     return Metered(data["returncode"], data["seconds"], data["peak_mb"], data["killed"])
 
 
+def reset_peak_rss() -> None:
+    """Reset this process's peak RSS (VmHWM) to its current RSS, so a later ``peak_rss_mb`` measures one step."""
+    Path("/proc/self/clear_refs").write_text("5")
+
+
+def peak_rss_mb() -> float:
+    """This process's peak RSS since start or since ``reset_peak_rss`` (VmHWM, MB)."""
+    status = Path("/proc/self/status").read_text()
+    return int(status.split("VmHWM:", 1)[1].split()[0]) / 1024
+
+
 def write_points_ply(path: Path, points: np.ndarray) -> None:
     """Write an ASCII PLY point cloud (so tests can also write NaNs and empty clouds)."""
     lines = ["ply", "format ascii 1.0", f"element vertex {len(points)}", "property float x", "property float y",

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from gdt_pipeline import GdtError
 from gdt_pipeline.plugins import load_registry
 from gdt_pipeline.runner import read_dataset
+\nfrom .conftest import peak_rss_mb, reset_peak_rss
 
 REGISTRY = load_registry()
 SEEDS = ("points.ply", "points_ascii.ply", "mesh.ply", "mesh_ascii.ply", "mesh.obj", "mesh.stl", "mesh_ascii.stl",
@@ -135,11 +136,10 @@ def test_random_bytes_read_or_raise_a_gdt_error(tmp_path: Path, ext: str) -> Non
 
 def test_one_long_token_among_many_is_refused_without_allocating(tmp_path: Path) -> None:
     """numpy sizes a bytes array by its longest token: 800,000 rows and one 5 MB number must not ask for terabytes."""
-    import resource
-
     path = tmp_path / "bomb.xyz"
     path.write_bytes(b"1 2 3\n" * 800_000 + b"1" * 5_000_000 + b" 2 3\n")
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    reset_peak_rss()  # the pytest process's earlier peak would hide this read's own
+    before = peak_rss_mb()
     with pytest.raises(GdtError, match=r"line 800001 .*a token of 5000000 characters"):
         read_dataset(path, REGISTRY, name="bomb")
-    assert (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024 < 900
+    assert peak_rss_mb() - before < 900

@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 from gdt_pipeline import GdtError
 from gdt_pipeline.plugins import load_registry
 from gdt_pipeline.runner import read_dataset
-\nfrom .conftest import peak_rss_mb, reset_peak_rss
+
+from .conftest import peak_rss_mb, reset_peak_rss
 
 REGISTRY = load_registry()
 SEEDS = ("points.ply", "points_ascii.ply", "mesh.ply", "mesh_ascii.ply", "mesh.obj", "mesh.stl", "mesh_ascii.stl",

@@ -126,3 +126,17 @@ def test_radius_check_passes_valid_searches_and_names_the_bad_one() -> None:
     with pytest.raises(StageError, match=r"test: a search of radius 2 .* extent \(bounding-box diagonal\) is 1.7"):
         check_radius(tree, 2.0, "test", "a search")  # every pair: 2·10^8 of them, counted without a list
     assert time.perf_counter() - t0 < 5.0
+
+
+def test_a_dense_noisy_scan_with_many_neighbours_at_its_own_scale_passes() -> None:
+    """The paper test scene's ToF scan joins ~600 changed elements to each at its 12 cm segment radius, 1/23 of its
+    extent: many neighbours, but at the data's scale and a few million pairs. That must pass; the same count with a
+    radius spanning the data, or a pair list beyond memory, must not."""
+    rng = np.random.default_rng(1)
+    plane = np.column_stack([rng.uniform(0, 2, 60_000), rng.uniform(0, 2, 60_000), rng.normal(0, 0.01, 60_000)])
+    tree = cKDTree(plane)
+    pairs = (tree.count_neighbors(tree, 0.08) - len(plane)) / 2
+    assert 2.0 * pairs / len(plane) > 200 and pairs > 1_000_000  # the case the limits must let through
+    check_radius(tree, 0.08, "test", "a search")
+    with pytest.raises(StageError, match=r"radius 0.5 would join"):
+        check_radius(tree, 0.5, "test", "a search")  # a quarter of the extent: another scale

@@ -16,8 +16,10 @@ from ..errors import StageError
 from ..types import Composite, Dataset
 
 MAX_SCALE_RATIO = 100.0  # recent vs reference bounding-box diagonal, either way
-MAX_MEAN_NEIGHBOURS = 200  # per element, in a radius search
+MAX_MEAN_NEIGHBOURS = 200  # per element, in a radius search that also spans a large part of the data
 MIN_PAIRS_CHECKED = 1_000_000  # fewer pairs than this cost nothing, whatever their mean
+MAX_RADIUS_SHARE = 0.1  # a radius over this share of the data's extent is at another scale than the data
+MAX_PAIRS = 50_000_000  # a pair list of this size takes 800 MB: beyond it, refuse whatever the cause
 MAX_SAMPLES = 20_000_000  # surface samples of one side of a registration
 
 
@@ -54,22 +56,25 @@ def check_scales(recent: Sequence[Dataset], reference: Composite | None, stage: 
 
 
 def check_radius(tree: cKDTree, radius: float, stage: str, what: str) -> None:
-    """Refuse a radius search that would hold more than ``MAX_MEAN_NEIGHBOURS`` elements per element on average (and
-    over ``MIN_PAIRS_CHECKED`` pairs in all), before any pair list is built."""
+    """Refuse a radius search at the wrong scale (over ``MAX_MEAN_NEIGHBOURS`` per element on average with a radius
+    over ``MAX_RADIUS_SHARE`` of the data's extent) or too large for memory (over ``MAX_PAIRS`` pairs), before any
+    pair list is built. Dense data with many neighbours at a radius that suits it passes (noisy scans do)."""
     n = int(tree.n)
     if n < 2 or n * (n - 1) / 2 <= MIN_PAIRS_CHECKED:
         return
     # ordered pairs within the radius, each element with itself included; a dual-tree count builds no list
     pairs = (int(tree.count_neighbors(tree, radius)) - n) / 2
     mean = 2.0 * pairs / n
-    if pairs <= MIN_PAIRS_CHECKED or mean <= MAX_MEAN_NEIGHBOURS:
-        return
     extent = diagonal(tree.data)
+    wrong_scale = mean > MAX_MEAN_NEIGHBOURS and radius > MAX_RADIUS_SHARE * extent
+    if pairs <= MIN_PAIRS_CHECKED or not (wrong_scale or pairs > MAX_PAIRS):
+        return
     raise StageError(f"{stage}: {what} of radius {radius:.4g} would join {mean:.0f} of the {n} elements to each on "
-                     f"average (limit {MAX_MEAN_NEIGHBOURS}); the data's extent (bounding-box diagonal) is "
-                     f"{extent:.4g}, {extent / radius:.3g}× the radius. Likely cause: the data is not at the scale the "
-                     f"radius assumes (check `units` of the inputs: a scan read in the wrong units is 1000× off), "
-                     f"or the radius is set too large")
+                     f"average ({pairs:.3g} pairs; limits: {MAX_MEAN_NEIGHBOURS} on average with a radius over "
+                     f"{MAX_RADIUS_SHARE:g} of the extent, {MAX_PAIRS:.0e} pairs in all); the data's extent "
+                     f"(bounding-box diagonal) is {extent:.4g}, {extent / radius:.3g}× the radius. Likely cause: the "
+                     f"data is not at the scale the radius assumes (check `units` of the inputs: a scan read in the "
+                     f"wrong units is 1000× off), or the radius is set too large")
 
 
 def expected_samples(ds: Dataset, spacing: float, elements: np.ndarray | None = None) -> float:

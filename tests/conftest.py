@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import sys
 import tempfile
 import textwrap
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -65,6 +67,25 @@ def peak_rss_mb() -> float:
     """This process's peak RSS since start or since ``reset_peak_rss`` (VmHWM, MB)."""
     status = Path("/proc/self/status").read_text()
     return int(status.split("VmHWM:", 1)[1].split()[0]) / 1024
+
+
+@contextlib.contextmanager
+def holding_writer_lock(twin: Path) -> Iterator[subprocess.Popen]:
+    """Another process holds the twin's writer lock while the block runs (it is killed after)."""
+    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+        import time
+        from twin_store import writer_lock
+        with writer_lock({str(twin)!r}):
+            print("locked", flush=True)
+            time.sleep(60)
+    """)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        yield holder
+    finally:
+        holder.kill()
+        holder.wait()
+        holder.stdout.close()
 
 
 def write_points_ply(path: Path, points: np.ndarray) -> None:

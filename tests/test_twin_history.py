@@ -22,7 +22,7 @@ from gdt_pipeline.runner import run_workflow
 from gdt_pipeline.simulation import make_test_scene, scene_objects
 from twin_store import TwinStore, TwinStoreError, writer_lock
 
-from .conftest import REPO, CubeScene, run_gdt, write_cube_workflow
+from .conftest import REPO, CubeScene, holding_writer_lock, run_gdt, write_cube_workflow
 
 
 @pytest.fixture
@@ -185,24 +185,13 @@ def test_sigkill_mid_epoch_leaves_the_twin_intact(cube_scene: CubeScene, registr
 def test_a_second_writer_is_refused(cube_scene: CubeScene, registry) -> None:
     wf = write_cube_workflow(cube_scene)
     twin = run_workflow(wf, registry=registry).twin
-    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
-        import sys, time
-        from twin_store import writer_lock
-        with writer_lock({str(twin)!r}):
-            print("locked", flush=True)
-            time.sleep(60)
-    """)], stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout.readline().strip() == "locked"
+    with holding_writer_lock(twin) as holder:
         res = run_gdt("run", str(wf), "--overwrite")
         assert res.returncode == 1 and "is being written by another writer" in res.stderr
         assert f"pid {holder.pid}" in res.stderr
         store = TwinStore.open(twin)
         with pytest.raises(TwinStoreError, match="being written by another writer"):
             store.write_epoch("E2", store.read_epoch("E1"), {})
-    finally:
-        holder.kill()
-        holder.wait()
     with writer_lock(twin):  # released when the holder died
         pass
 

@@ -8,7 +8,6 @@ import os
 import shutil
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import pytest
@@ -19,7 +18,7 @@ from gdt_pipeline.runner import run_workflow
 from twin_store import TwinStore, TwinStoreError, lock_path, swap_into_place, writer_lock
 from twin_store.swap import exchange
 
-from .conftest import CubeScene, make_cube_scene, run_gdt, write_cube_workflow
+from .conftest import CubeScene, holding_writer_lock, make_cube_scene, run_gdt, write_cube_workflow
 
 
 @pytest.fixture(scope="module")
@@ -146,24 +145,13 @@ def test_overwrite_refuses_a_twin_folder_with_user_files(scene: CubeScene) -> No
 
 def test_a_refused_writer_leaves_the_holders_lock_record(scene: CubeScene) -> None:
     twin = scene.dir / "twin"
-    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
-        import time
-        from twin_store import writer_lock
-        with writer_lock({str(twin)!r}):
-            print("locked", flush=True)
-            time.sleep(60)
-    """)], stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout.readline().strip() == "locked"
+    with holding_writer_lock(twin) as holder:
         for _ in range(2):  # the second refused writer still learns who holds the twin
             with pytest.raises(TwinStoreError, match=f"pid {holder.pid} since"), writer_lock(twin):
                 pass
         assert lock_path(twin).read_text().startswith(f"pid {holder.pid} ")
         res = run_gdt("run", str(scene.dir / "workflow.yaml"), "--overwrite")
         _failed(res, f"pid {holder.pid}")
-    finally:
-        holder.kill()
-        holder.wait()
     with writer_lock(twin):
         assert lock_path(twin).read_text().startswith(f"pid {os.getpid()} ")
     assert lock_path(twin).read_text() == ""  # the holder clears its own record

@@ -79,3 +79,16 @@ def test_a_name_cannot_be_both_a_stage_and_a_reader(registry) -> None:
         ReaderSpec(name="fixed", version="1", extensions=(".zzz",), read=_read_csv)])
     with pytest.raises(PluginError, match="'fixed' is both a stage"):
         load_registry(extra=[("clash_reader", clash)])
+
+
+def test_what_a_reader_dropped_is_in_the_epochs_provenance(tmp_path: Path, registry) -> None:
+    scene = make_cube_scene(tmp_path / "scene", n_cube=600, n_new=200)
+    text = scene.cad.read_text()
+    n_vertices = sum(1 for line in text.splitlines() if line.startswith("v "))
+    # two zero-area facets: a repeated vertex, and three collinear vertices added for it
+    extra = "v 0 0 0\nv 0.5 0 0\nv 1 0 0\n"
+    degenerate = f"f 1 1 2\nf {n_vertices + 1} {n_vertices + 2} {n_vertices + 3}\n"
+    scene.cad.write_text(text + extra + degenerate)
+    result = run_workflow(write_cube_workflow(scene, tau=10.0), registry=registry)
+    cad_input = TwinStore.open(result.twin).provenance("E0")["inputs"][0]
+    assert cad_input["notes"] == {"degenerate_facets_dropped": 2} and cad_input["elements"] == 12

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from gdt_pipeline import Dataset, StageContext
 
 
@@ -15,3 +17,9 @@ def selected(ctx: StageContext) -> tuple[list[Dataset], set[str]]:
     if unknown:
         raise ValueError(f"datasets {unknown} are not in this epoch (have: {[d.name for d in recent]})")
     return recent, set(names)
+
+
+def map_selected(ctx: StageContext, estimate: Callable[[Dataset], Dataset]) -> list[Dataset]:
+    """The recent datasets in order, each selected one replaced by ``estimate(dataset)``, the others as they are."""
+    recent, names = selected(ctx)
+    return [estimate(ds) if ds.name in names else ds for ds in recent]

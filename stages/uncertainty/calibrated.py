@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from gdt_pipeline import GaussianUncertainty, StageContext
 from gdt_pipeline.sensors import load_profile
 
-from ._select import selected
+from ._select import map_selected
 
 
 class CalibratedParams(BaseModel):
@@ -26,6 +26,5 @@ def calibrated(ctx: StageContext) -> dict[str, Any]:
     profile = load_profile(ctx.params.profile, ctx.epoch.workflow_dir)
     units = ctx.epoch.units
     unc = GaussianUncertainty.isotropic(profile.isotropic_sigma(units))
-    recent, names = selected(ctx)
     ctx.log.info("calibrated sigma %.6g %s from profile %s", float(np.sqrt(unc.cov[0, 0, 0])), units, profile.name)
-    return {"recent": [d.with_uncertainty(unc) if d.name in names else d for d in recent]}
+    return {"recent": map_selected(ctx, lambda d: d.with_uncertainty(unc))}

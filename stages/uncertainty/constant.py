@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, model_validato
 
 from gdt_pipeline import BoxUncertainty, GaussianUncertainty, StageContext
 
-from ._select import selected
+from ._select import map_selected
 
 
 class ConstantParams(BaseModel):
@@ -68,5 +68,4 @@ class ConstantParams(BaseModel):
 def constant(ctx: StageContext) -> dict[str, Any]:
     """Every selected recent dataset gets the one uncertainty of the parameters."""
     unc = ctx.params.build()
-    recent, names = selected(ctx)
-    return {"recent": [d.with_uncertainty(unc) if d.name in names else d for d in recent]}
+    return {"recent": map_selected(ctx, lambda d: d.with_uncertainty(unc))}

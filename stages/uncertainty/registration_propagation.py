@@ -6,9 +6,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from gdt_pipeline import GaussianUncertainty, StageContext
+from gdt_pipeline import Dataset, GaussianUncertainty, StageContext
 
-from ._select import selected
+from ._select import map_selected, selected
 from .estimators import propagate_registration
 
 
@@ -25,15 +25,12 @@ class PropagationParams(BaseModel):
 def registration_propagation(ctx: StageContext) -> dict[str, Any]:
     """The registration's covariance added to every element of the selected recent datasets."""
     reg = ctx["registration"]
-    recent, names = selected(ctx)
+    recent, _ = selected(ctx)
     if reg.covariance is None:
         ctx.log.warning("registration %r has no covariance: nothing to propagate", reg.method)
         return {"recent": recent}
-    out = []
-    for ds in recent:
-        if ds.name not in names:
-            out.append(ds)
-            continue
+
+    def add_registration(ds: Dataset) -> Dataset:
         unc = ds.uncertainty
         if unc is None:
             raise ValueError(f"dataset {ds.name!r} has no uncertainty to add the registration's to")
@@ -41,5 +38,6 @@ def registration_propagation(ctx: StageContext) -> dict[str, Any]:
             raise ValueError(f"dataset {ds.name!r} has a {unc.family!r} uncertainty; adding a Gaussian registration "
                              f"error to it is not a {unc.family} (set `non_gaussian: moment_match`)")
         extra = propagate_registration(ds.element_positions() - reg.center, reg.covariance)
-        out.append(ds.with_uncertainty(GaussianUncertainty(ds.element_covariance() + extra)))
-    return {"recent": out}
+        return ds.with_uncertainty(GaussianUncertainty(ds.element_covariance() + extra))
+
+    return {"recent": map_selected(ctx, add_registration)}

@@ -8,11 +8,11 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveInt
 
-from gdt_pipeline import GaussianUncertainty, StageContext
+from gdt_pipeline import Dataset, GaussianUncertainty, StageContext
 from gdt_pipeline.geometry import estimate_normals
 from gdt_pipeline.sensors import PRESETS, load_profile
 
-from ._select import selected
+from ._select import map_selected
 from .estimators import beam_covariances
 
 
@@ -32,12 +32,8 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
     """Per-point covariances of the selected recent datasets from their sensor position and the profile."""
     profile = load_profile(ctx.params.profile, ctx.epoch.workflow_dir)
     units = ctx.epoch.units
-    recent, names = selected(ctx)
-    out = []
-    for ds in recent:
-        if ds.name not in names:
-            out.append(ds)
-            continue
+
+    def estimate(ds: Dataset) -> Dataset:
         if ctx.params.viewpoint is not None:
             origin = np.asarray(ctx.params.viewpoint, dtype=np.float64)
         elif ds.viewpoints is not None and len(ds.viewpoints) == 1:
@@ -57,5 +53,6 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
                 normals = estimate_normals(ds.points, ctx.params.normal_neighbours)
             cos = np.einsum("ij,ij->i", normals, beam / np.maximum(beam_range[:, None], 1e-300))
         s_range, s_lat = profile.sigmas(beam_range, cos, units)
-        out.append(ds.with_uncertainty(GaussianUncertainty(beam_covariances(pos, origin, s_range, s_lat))))
-    return {"recent": out}
+        return ds.with_uncertainty(GaussianUncertainty(beam_covariances(pos, origin, s_range, s_lat)))
+
+    return {"recent": map_selected(ctx, estimate)}

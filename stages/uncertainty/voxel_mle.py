@@ -9,10 +9,10 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
 
-from gdt_pipeline import GaussianUncertainty, StageContext
+from gdt_pipeline import Dataset, GaussianUncertainty, StageContext
 
 from . import estimators
-from ._select import selected
+from ._select import map_selected
 
 
 class VoxelMleParams(BaseModel):
@@ -34,12 +34,8 @@ def voxel_mle(ctx: StageContext) -> dict[str, Any]:
     p = ctx.params
     steps = max(1, round(1.0 / (1.0 - p.overlap)))
     floor = p.min_sigma if p.min_sigma is not None else p.voxel / 100.0
-    recent, names = selected(ctx)
-    out = []
-    for ds in recent:
-        if ds.name not in names:
-            out.append(ds)
-            continue
+
+    def estimate(ds: Dataset) -> Dataset:
         if ds.faces is not None:
             raise ValueError(f"dataset {ds.name!r} is a mesh; voxel_mle estimates Gaussians from point samples")
         mean, cov, counts = estimators.voxel_mle(ds.points, p.voxel, steps, p.min_points, floor)
@@ -47,5 +43,6 @@ def voxel_mle(ctx: StageContext) -> dict[str, Any]:
             raise ValueError(f"dataset {ds.name!r}: no voxel of edge {p.voxel} holds {p.min_points} points")
         ctx.log.info("%s: %d points -> %d voxel Gaussians (overlap %.3g, median %d points each)", ds.name,
                      len(ds.points), len(mean), 1 - 1 / steps, int(np.median(counts)))
-        out.append(dataclasses.replace(ds, points=mean, uncertainty=GaussianUncertainty(cov)))
-    return {"recent": out}
+        return dataclasses.replace(ds, points=mean, uncertainty=GaussianUncertainty(cov))
+
+    return {"recent": map_selected(ctx, estimate)}

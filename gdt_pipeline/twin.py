@@ -43,5 +43,10 @@ def composite_to_elements(composite: Composite) -> list[ElementSet]:
                               state=it.state, score=it.score.astype(np.float32), source_epoch=it.source_epoch,
                               visible=it.visible,
                               p_value=None if it.p_value is None else it.p_value.astype(np.float32),
-                              reason=it.reason, reason_ratio=it.reason_ratio.astype(np.float32)))
+                              reason=it.reason, reason_ratio=it.reason_ratio.astype(np.float32),
+                              area_seen=_f32(it.area_seen), area_removed=_f32(it.area_removed)))
     return out
+
+
+def _f32(values: np.ndarray | None) -> np.ndarray | None:
+    return None if values is None else values.astype(np.float32)

@@ -46,6 +46,8 @@ class ElementSet:
     p_value: np.ndarray | None = None  # (E,) p-value of the change test, where the measure has one
     reason: np.ndarray | None = None  # (E,) uint8 fusion reason code (REASON_NAMES)
     reason_ratio: np.ndarray | None = None  # (E,) the numbers behind the reason: √det Σ new / known, NaN if none
+    area_seen: np.ndarray | None = None  # (E,) share of the element's area a station saw, NaN where not judged
+    area_removed: np.ndarray | None = None  # (E,) share of the element's area seen through (removed)
 
     def __post_init__(self) -> None:
         if not Tf.IsValidIdentifier(self.key):
@@ -67,7 +69,8 @@ class ElementSet:
             n = len(pts)
         shapes = {"uncertainty_summary": (n,), "state": (n,), "score": (n,), "source_epoch": (n,), "visible": (n,),
                   "covariance": (n, 6), "half_widths": (n, 3), "rotation": (n, 3, 3), "ids": (n,),
-                  "display_color": (n, 3), "p_value": (n,), "reason": (n,), "reason_ratio": (n,)}
+                  "display_color": (n, 3), "p_value": (n,), "reason": (n,), "reason_ratio": (n,),
+                  "area_seen": (n,), "area_removed": (n,)}
         for name, shape in shapes.items():
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
@@ -123,6 +126,10 @@ def primvar_values(es: ElementSet) -> Primvars:
     if es.reason_ratio is not None:
         out["gdt:fusionRatio"] = (types.FloatArray, interp, np.asarray(es.reason_ratio, dtype=np.float32), 1,
                                   names.DOC_RATIO)
+    for attr, name, doc in (("area_seen", "gdt:areaSeen", names.DOC_AREA_SEEN),
+                            ("area_removed", "gdt:areaRemoved", names.DOC_AREA_REMOVED)):
+        if getattr(es, attr) is not None:
+            out[name] = (types.FloatArray, interp, np.asarray(getattr(es, attr), dtype=np.float32), 1, doc)
     if es.rotation is not None:
         out["gdt:rotation"] = (types.FloatArray, interp, np.asarray(es.rotation, dtype=np.float32).reshape(-1), 9,
                                names.DOC_ROTATION)
@@ -285,4 +292,5 @@ def read_element_set(prim: Usd.Prim) -> ElementSet:
         state=pv("gdt:changeState", np.uint8), score=pv("gdt:changeScore", np.float32),
         source_epoch=pv("gdt:sourceEpoch", np.int32), visible=pv("gdt:visible", bool), ids=ids,
         p_value=pv("gdt:pValue", np.float32), reason=pv("gdt:fusionReason", np.uint8),
-        reason_ratio=pv("gdt:fusionRatio", np.float32))
+        reason_ratio=pv("gdt:fusionRatio", np.float32), area_seen=pv("gdt:areaSeen", np.float32),
+        area_removed=pv("gdt:areaRemoved", np.float32))

@@ -40,6 +40,10 @@ DOC_REASON = ("Per-element fusion reason code: " + ", ".join(f"{i}={n}" for i, n
               + ". Hidden elements keep the reason they left with.")
 DOC_RATIO = ("The fusion rule's number per element: √det Σ of the new data over that of the known data it was "
              "compared with (replaced, replaces, known_more_precise); NaN where no comparison was made.")
+DOC_AREA_SEEN = ("Share of each element's area a station of the epoch saw (measured surface at it, or seen through "
+                 "it), from samples spread over the facet; NaN where the region of view judged elements whole.")
+DOC_AREA_REMOVED = ("Share of each element's area a station saw through (measured surface clearly behind it): the "
+                    "removed part; the element is removed when more of it was seen through than found present.")
 DOC_ROTATION = "Box axes per element: a row-major 3x3 rotation whose columns are the axes."
 
 # The run record a `gdt run` writes into the twin folder (seed, packages, cache keys, layer sha256s); the twin owns it.

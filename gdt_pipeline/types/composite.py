@@ -32,6 +32,8 @@ class CompositeItem:
     p_value: np.ndarray | None = None
     reason: np.ndarray | None = None
     reason_ratio: np.ndarray | None = None
+    area_seen: np.ndarray | None = None  # share of each element's area a station saw (NaN: not judged by area)
+    area_removed: np.ndarray | None = None  # share of each element's area seen through, i.e. removed
 
     def __post_init__(self) -> None:
         n = self.dataset.n_elements
@@ -41,6 +43,10 @@ class CompositeItem:
         object.__setattr__(self, "reason_ratio", frozen_array(ratio, np.float64, (n,), f"{self.key}: fusion ratio"))
         if self.p_value is not None:
             object.__setattr__(self, "p_value", frozen_array(self.p_value, np.float64, (n,), f"{self.key}: p-value"))
+        for name in ("area_seen", "area_removed"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, frozen_array(getattr(self, name), np.float64, (n,),
+                                                            f"{self.key}: {name}"))
         object.__setattr__(self, "state", frozen_array(self.state, np.uint8, (n,), f"{self.key}: state"))
         object.__setattr__(self, "score", frozen_array(self.score, np.float64, (n,), f"{self.key}: score"))
         object.__setattr__(self, "source_epoch", frozen_array(self.source_epoch, np.int32, (n,), f"{self.key}: source"))

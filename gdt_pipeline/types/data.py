@@ -117,6 +117,10 @@ class RegionOfView:
     in_view: dict[str, np.ndarray] = field(default_factory=dict)
     matched: dict[str, np.ndarray] = field(default_factory=dict)
     method: str = ""
+    # per reference item, the share of each element's area a station saw (present or seen through) and saw
+    # through (removed); empty where the stage judged elements whole
+    seen_fraction: dict[str, np.ndarray] = field(default_factory=dict)
+    removed_fraction: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         verts = frozen_array(self.vertices, np.float64, (None, 3), "region of view vertices")

@@ -63,6 +63,9 @@ class DirectedParams(BaseModel):
     sample_density: PositiveFloat | None = Field(None, description="Samples per unit² on recent facets (default: "
                                                                    "about four on an average facet).")
     max_samples_per_facet: PositiveInt = Field(64, description="Cap of samples on one facet.")
+    surface_sampling: bool = Field(True, description="Reference points also carry where the surface lies between "
+                                                     "them: (half their spacing)² in their tangent plane, so a sparse "
+                                                     "precise scan matches a later one sampled elsewhere.")
 
 
 def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: bool, use_meshes: bool
@@ -70,7 +73,7 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
     p = ctx.params
     reference = ctx["reference"]
     check_scales(ctx["recent"], reference, name)
-    ref_pts = ReferencePoints(reference) if use_points else None
+    ref_pts = ReferencePoints(reference, p.surface_sampling) if use_points else None
     ref_mesh = ReferenceMeshes(reference) if use_meshes else None
     if (ref_pts is None or ref_pts.empty) and (ref_mesh is None or ref_mesh.empty):
         wanted = " or ".join(k for k, u in (("points", use_points), ("meshes", use_meshes)) if u)

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gdt_pipeline import Composite, Correspondences, Dataset, MixtureUncertainty
-from gdt_pipeline.geometry import quad_inv3
+from gdt_pipeline.geometry import estimate_normals, quad_inv3
 
 
 @dataclass(frozen=True)
@@ -51,10 +51,30 @@ def query_samples(ds: Dataset, rng: np.random.Generator, density: float | None, 
     return idx, t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
 
 
-class ReferencePoints:
-    """The visible points of a composite's point items, with their covariances, in one KD-tree."""
+def sampling_covariance(pos: np.ndarray, cov: np.ndarray, neighbours: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Which points are sampled more sparsely than they are precise (largest σ under half the spacing s, their
+    median distance to their three nearest neighbours), and for those the covariance of where the surface lies
+    around them: (s/2)² in the tangent plane (PCA normal of ``neighbours`` points), none along the normal."""
+    if len(pos) < 4:
+        return np.zeros(len(pos), dtype=bool), np.zeros((len(pos), 3, 3))
+    d, _ = cKDTree(pos).query(pos, k=4)
+    half = 0.5 * np.median(d[:, 1:], axis=1)
+    sparse = np.linalg.eigvalsh(cov)[:, -1] < half**2
+    out = np.zeros((len(pos), 3, 3))
+    if sparse.any():
+        normal = estimate_normals(pos, min(neighbours, len(pos)))[sparse]
+        tangent = np.eye(3)[None] - normal[:, :, None] * normal[:, None, :]
+        out[sparse] = half[sparse, None, None] ** 2 * tangent
+    return sparse, out
 
-    def __init__(self, composite: Composite) -> None:
+
+class ReferencePoints:
+    """The visible points of a composite's point items, with their covariances, in one KD-tree; with ``sampling``,
+    the covariance of points sampled more sparsely than they are precise also holds where the surface lies between
+    them (``sampling_covariance``): a precise scan sampled every few millimetres still matches a later one whose
+    points fall between its own."""
+
+    def __init__(self, composite: Composite, sampling: bool = True) -> None:
         pos, item, elem, cov = [], [], [], []
         for i, it in enumerate(composite.items):
             ds = it.dataset
@@ -72,6 +92,10 @@ class ReferencePoints:
             return
         self.pos, self.item, self.elem = np.concatenate(pos), np.concatenate(item), np.concatenate(elem)
         self.cov = np.concatenate(cov)
+        self.sparse = np.zeros(len(self.pos), dtype=bool)
+        if sampling:
+            self.sparse, extra = sampling_covariance(self.pos, self.cov)
+            self.cov = self.cov + extra
         self.origin = self.pos.mean(axis=0)
         # One search radius from the largest reference variance would make every query gather the whole scene
         # when a few grazing-angle ToF points have decimetre sigmas; tiers of similar variance (a factor of 4
@@ -118,7 +142,10 @@ def point_to_point(qpos: np.ndarray, qcov: np.ndarray, ref: ReferencePoints, chi
     flat_q, flat_r, m2 = flat_q[order], flat_r[order], m2[order]
     starts = np.r_[0, np.flatnonzero(np.diff(flat_q)) + 1]
     rank = np.arange(len(flat_q)) - np.repeat(starts, np.diff(np.r_[starts, len(flat_q)]))
-    top = rank < max_components
+    # a sparse precise point already stands for the surface around it: its neighbours would only smear it (and
+    # make the mixture's BC expensive to bound), so it is its query's one component
+    first = np.repeat(flat_r[starts], np.diff(np.r_[starts, len(flat_q)])) if len(flat_q) else flat_r
+    top = (rank < max_components) & ~(ref.sparse[first] & (rank > 0))
     flat_q, flat_r, rank = flat_q[top], flat_r[top], rank[top]
     queries = np.unique(flat_q)
     if queries.size == 0:

@@ -56,8 +56,25 @@ def _carried(reference: Composite, rov: RegionOfView | None) -> tuple[list[Compo
             reason[removed] = FusionReason.REMOVED
             visible = it.visible & ~removed
             removed_now[len(items)] = removed
-        items.append(dataclasses.replace(it, state=state, visible=visible, reason=reason, reason_ratio=ratio))
+            areas = _areas(it, rov)
+        else:
+            areas = {}
+        items.append(dataclasses.replace(it, state=state, visible=visible, reason=reason, reason_ratio=ratio,
+                                         **areas))
     return items, removed_now
+
+
+def _areas(it: CompositeItem, rov: RegionOfView) -> dict[str, np.ndarray]:
+    """This epoch's shares of area seen and removed where the region of view judged the item by area; elements
+    hidden before keep the shares they left with."""
+    if it.key not in rov.seen_fraction:
+        return {}
+    out = {}
+    for name, now in (("area_seen", rov.seen_fraction[it.key]), ("area_removed", rov.removed_fraction[it.key])):
+        before = getattr(it, name)
+        before = np.full(len(now), np.nan) if before is None else before
+        out[name] = np.where(it.visible, now, before)
+    return out
 
 
 def _replace(ctx: StageContext, items: list[CompositeItem], policy: str) -> Decision:

@@ -11,7 +11,9 @@ from scipy.spatial import cKDTree
 from gdt_pipeline import Composite, CompositeItem, Dataset, RegionOfView, StageContext
 from gdt_pipeline.geometry import raycasting_scene
 
-from ._occlusion import OcclusionParams, Sight, Station, confirmed_facets, plane_view, station_view
+from ._depth import Station
+from ._depth_view import look_depth
+from ._occlusion import OcclusionParams, Sight, confirmed_facets, plane_view, station_view
 
 
 def point_spacing(points: np.ndarray) -> float:
@@ -56,7 +58,7 @@ def _stations(p: OcclusionParams, rov: RegionOfView, vps: np.ndarray | None, sta
     volume as its own); None under ``sight: plane``."""
     if p.sight != "stations":
         return stations
-    stations = stations if stations is not None else [(eye, rov.contains) for eye in (
+    stations = stations if stations is not None else [Station(eye, rov.contains, ()) for eye in (
         vps if vps is not None else np.zeros((0, 3)))]
     if not stations:
         raise ValueError("sight: stations needs sensor positions: the inputs carry no viewpoints; state them "
@@ -139,6 +141,8 @@ def look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list[
     reference: Composite = ctx.get("reference") or Composite()
     rpts = np.vstack([ds.element_positions() for ds in recent]) if recent else np.zeros((0, 3))
     spacing = point_spacing(rpts)
+    if p.sight == "depth":
+        return look_depth(ctx, rov, parts, stations, spacing)
     offset = p.offset or 3 * spacing
     match = p.match_distance or 3 * spacing
     vps = _viewpoints(p, recent)

@@ -33,11 +33,19 @@ class OcclusionParams(BaseModel):
                                                                    "the inputs carry).")
     confirmed_occlude: bool = Field(True, description="Reference facets the recent data matches (confirmed present) "
                                                       "hide what lies behind them too, seen from their front.")
-    sight: Literal["plane", "stations"] = Field(
-        "plane", description="plane: the sight ray runs to the Plane of Sight through all sensor positions (the "
-                             "paper; for sensors along one sweep); stations: to each sensor whose own frustum holds "
-                             "the element and which the facet faces, in view when any such ray is clear (for "
-                             "stations all around the object, where one plane through them cuts through it).")
+    sight: Literal["depth", "plane", "stations"] = Field(
+        "depth", description="depth: each station's depth image of its own measured points; an element's place is "
+                             "seen when measured surface lies at its depth (present) or clearly behind it (seen "
+                             "through: removed), hidden when it stands clearly in front; no surface reconstruction. "
+                             "plane: the sight ray runs to the Plane of Sight through all sensor positions and "
+                             "crosses a ball-pivoted surface of the recent points (the paper); stations: to each "
+                             "sensor whose own frustum holds the element, in view when any such ray is clear.")
+    k_sigma: PositiveFloat = Field(3.0, description="sight: depth: measured surface within k σ (the point's and the "
+                                                    "element's, along the ray) of an element's depth is at it.")
+    pixel_scale: PositiveFloat = Field(1.0, description="sight: depth: the depth image's pixel as a multiple of the "
+                                                        "points' median angular spacing.")
+    samples_per_facet: int = Field(64, ge=1, le=4096, description="sight: depth: the most samples a reference facet "
+                                                                  "is judged on (about one per point spacing²).")
 
 
 def pos_closest(points: np.ndarray, viewpoints: np.ndarray) -> np.ndarray:
@@ -114,9 +122,6 @@ def shadowed(origins: np.ndarray, targets: np.ndarray, tree: cKDTree, radius: fl
     return out
 
 
-Station = tuple[np.ndarray, Any]  # a sensor position and the test of which points its own volume holds
-
-
 def confirmed_facets(items: list[tuple[Dataset, np.ndarray]]):  # -> (RaycastingScene, facet normals) | None
     """The reference facets the recent data matched, as one ray-casting scene (one geometry, so that Open3D's
     primitive ids index the stacked normals) with their normals."""
@@ -167,16 +172,17 @@ def hidden_from(pos: np.ndarray, target: np.ndarray, sight: Sight) -> np.ndarray
     return hidden | blocked_by_confirmed(near_start, target, sight.confirmed)
 
 
-def station_view(pos: np.ndarray, inside: np.ndarray, normal: np.ndarray | None, stations: list[Station],
+def station_view(pos: np.ndarray, inside: np.ndarray, normal: np.ndarray | None, stations: list[Any],
                  sight: Sight, p: OcclusionParams) -> np.ndarray:
     """In view from at least one station: inside its own volume, facing it, with a clear sight ray to it. Stations
     are tried in turn on the elements none has seen yet (a loop over the few stations; elements are vectorised)."""
     view = np.zeros(len(pos), dtype=bool)
     todo = np.flatnonzero(inside)
-    for eye, contains in stations:
+    for station in stations:  # _depth.Station: eye and its own volume
         if not todo.size:
             break
-        cand = todo[contains(pos[todo])]
+        eye = station.eye
+        cand = todo[station.contains(pos[todo])]
         if p.cull_back_faces and normal is not None:
             cand = cand[np.einsum("ij,ij->i", normal[cand], eye[None, :] - pos[cand]) > 0]
         if p.occlusion and cand.size:

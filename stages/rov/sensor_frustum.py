@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from pydantic import Field, PositiveFloat
 
 from gdt_pipeline import Dataset, RegionOfView, StageContext
 
+from ._depth import Station, view_frame
 from ._look import look
 from ._occlusion import OcclusionParams
 
@@ -29,20 +30,10 @@ class FrustumParams(OcclusionParams):
     margin_deg: float = Field(1.0, ge=0, description="Angular margin around a frustum fitted to the data.")
 
 
-def _frame(fwd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The view axis and the right and up directions of a pinhole looking along ``fwd``."""
-    # not geometry.beam_frames: the helper axis switches at 0.95, not 0.9, and "up" is right x forward
-    fwd = fwd / np.linalg.norm(fwd)
-    helper = np.array([0.0, 0.0, 1.0]) if abs(fwd[2]) < 0.95 else np.array([1.0, 0.0, 0.0])
-    right = np.cross(fwd, helper)
-    right /= np.linalg.norm(right)
-    return fwd, right, np.cross(right, fwd)
-
-
 def _frustum_mesh(eye: np.ndarray, fwd: np.ndarray, u: tuple[float, float], v: tuple[float, float], near: float,
                   far: float) -> tuple[np.ndarray, np.ndarray]:
     """A closed pinhole frustum: image-plane tangent bounds u (right) and v (up), between near and far depth."""
-    f, r, up = _frame(fwd)
+    f, r, up = view_frame(fwd)
     corners = []
     for depth in (near, far):
         for a, b in ((u[0], v[0]), (u[1], v[0]), (u[1], v[1]), (u[0], v[1])):
@@ -69,10 +60,20 @@ def _pose(ds: Dataset, workflow_dir: Path) -> dict[str, Any] | None:
     return data if data.get("target") is not None and data.get("scanner") else None
 
 
-def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path
-                    ) -> list[tuple[np.ndarray, np.ndarray, str, np.ndarray]]:
-    """A dataset's frusta (vertices, faces, how it was found, the sensor position): one from its pose file, else
-    one per viewpoint fitted around the directions to its points."""
+class Frustum(NamedTuple):
+    """One sensor's frustum as a closed mesh, how it was found, the sensor position and its range when a pose file
+    states it (nothing measured closer is empty space; 0 when unknown)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    how: str
+    eye: np.ndarray
+    free_range: float = 0.0
+
+
+def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path) -> list[Frustum]:
+    """A dataset's frusta: one from its pose file, else one per viewpoint fitted around the directions to its
+    points."""
     pose = _pose(ds, workflow_dir)
     pts = ds.element_positions()
     if pose is not None and (pose["scanner"].get("kind", "pinhole") == "pinhole"):
@@ -82,14 +83,14 @@ def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path
         tv = th / (p.aspect or sc["aspect"])
         far = p.far or float(sc["max_range"])
         verts, faces = _frustum_mesh(eye, target - eye, (-th, th), (-tv, tv), p.near, far)
-        return [(verts, faces, f"{ds.name}: pinhole frustum from its pose file", eye)]
+        return [Frustum(verts, faces, f"{ds.name}: pinhole frustum from its pose file", eye, far)]
     if ds.viewpoints is None or not len(pts):
         return []
     out = []
     for eye in np.atleast_2d(ds.viewpoints):
         d = pts - eye
         fwd = d.mean(axis=0)
-        f, r, up = _frame(fwd)
+        f, r, up = view_frame(fwd)
         depth = d @ f
         if np.any(depth <= 1e-9 * np.linalg.norm(d, axis=1)):
             raise ValueError(f"dataset {ds.name!r}: its points surround viewpoint {eye.tolist()} (a spherical scan); "
@@ -98,23 +99,27 @@ def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path
         m = np.tan(np.radians(p.margin_deg))
         far = p.far or 1.05 * float(np.linalg.norm(d, axis=1).max())
         verts, faces = _frustum_mesh(eye, f, (a.min() - m, a.max() + m), (b.min() - m, b.max() + m), p.near, far)
-        out.append((verts, faces, f"{ds.name}: frustum fitted to its points from {np.round(eye, 4).tolist()}", eye))
+        out.append(Frustum(verts, faces, f"{ds.name}: frustum fitted to its points from {np.round(eye, 4).tolist()}",
+                           eye))
     return out
 
 
 def sensor_frustum(ctx: StageContext) -> dict[str, Any]:
     """The union of the sensors' frusta, minus what recent data occludes."""
-    frusta = []
-    for ds in ctx["recent"]:
-        frusta += _dataset_frusta(ds, ctx.params, ctx.epoch.workflow_dir)
+    frusta, owner = [], []
+    for i, ds in enumerate(ctx["recent"]):
+        found = _dataset_frusta(ds, ctx.params, ctx.epoch.workflow_dir)
+        frusta += found
+        owner += [i] * len(found)
     if not frusta:
         raise ValueError("no recent dataset carries viewpoints or a pose file: give the inputs 'viewpoints' or use "
                          "manual_box")
     verts, faces, start = [], [], 0
-    for v, f, _, _ in frusta:
-        verts.append(v)
-        faces.append(f + start)
-        start += len(v)
-    rov = RegionOfView(np.vstack(verts), np.vstack(faces), tuple(len(f) for _, f, _, _ in frusta))
-    stations = [(eye, lambda q, k=k: rov.contains(q, part=k)) for k, (_, _, _, eye) in enumerate(frusta)]
-    return look(ctx, rov, [how for _, _, how, _ in frusta], stations)
+    for fr in frusta:
+        verts.append(fr.vertices)
+        faces.append(fr.faces + start)
+        start += len(fr.vertices)
+    rov = RegionOfView(np.vstack(verts), np.vstack(faces), tuple(len(fr.faces) for fr in frusta))
+    stations = [Station(fr.eye, lambda q, k=k: rov.contains(q, part=k), (i,), fr.free_range)
+                for k, (fr, i) in enumerate(zip(frusta, owner, strict=True))]
+    return look(ctx, rov, [fr.how for fr in frusta], stations)

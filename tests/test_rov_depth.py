@@ -1,0 +1,166 @@
+"""The region of view by depth images (``sight: depth``): removal needs a station to have seen through an element's
+place, noisy long-range scans keep present objects present, and facets are judged over their whole area."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+
+import numpy as np
+import pytest
+import trimesh
+
+from gdt_pipeline import Composite, CompositeItem, Dataset, EpochInfo, GaussianUncertainty
+from gdt_pipeline.plugins import StageContext, load_registry
+from gdt_pipeline.sensors import SensorProfile
+from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
+from gdt_pipeline.types import SourceInfo
+from stages.rov._samples import area_samples, sub_centroids
+
+EYE = np.zeros(3)
+# the low-cost ToF of the pipe-rack report: along the beam (1 mm + 2.5 mm·r²)/cos θ, across it 1 mm + 0.8 mm·r
+TOF = SensorProfile(name="tof_report", units="m", range_sigma=[0.001, 0.0, 0.0025], lateral_sigma=[0.001, 0.0008],
+                    min_cos_incidence=0.2)
+
+
+@pytest.fixture(scope="module")
+def registry():
+    return load_registry()
+
+
+def _ctx(registry, stage: str, params: dict, recent: list[Dataset], reference: Composite, tmp_path) -> StageContext:
+    spec = registry.get(stage)
+    info = EpochInfo(id="E1", index=1, role="as-is", seed=0, workflow_dir=tmp_path, units="m")
+    slots = {"recent": recent, "reference": reference, "epoch": info}
+    return StageContext(stage=spec, params=spec.params(**params), slots=slots, epoch=info,
+                        rng=np.random.default_rng(0), seed=0, log=logging.getLogger("test"))
+
+
+def _item(key: str, mesh: trimesh.Trimesh) -> CompositeItem:
+    ds = Dataset(key, "as-designed", mesh.vertices, faces=mesh.faces)
+    n = len(mesh.faces)
+    return CompositeItem(key, ds, "E0", np.zeros(n, np.uint8), np.full(n, np.nan), np.zeros(n, np.int32),
+                         np.ones(n, bool))
+
+
+def _box(extents: tuple[float, float, float], centre: tuple[float, float, float]) -> trimesh.Trimesh:
+    box = trimesh.creation.box(extents=extents)
+    box.apply_translation(centre)
+    return box
+
+
+def _measured(meshes: list, profile: SensorProfile, seed: int, name: str = "scan", target=(3.5, 0, 0),
+              density: float = 20000.0) -> Dataset:
+    """A simulated pinhole scan of ``meshes`` from the origin with the profile's anisotropic covariance."""
+    spec = ScannerSpec(fov_deg=30.0, aspect=1.0, points_per_m2=density, max_range=10.0)
+    scan = simulate_scan(meshes, EYE, np.asarray(target, float), spec, np.random.default_rng(seed), profile=profile)
+    d = scan.clean - EYE
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    dd = d[:, :, None] * d[:, None, :]
+    cov = scan.sigma_range[:, None, None] ** 2 * dd + scan.sigma_lateral[:, None, None] ** 2 * (np.eye(3) - dd)
+    return Dataset(name, "as-is", scan.points, viewpoints=EYE[None]).with_uncertainty(GaussianUncertainty(cov))
+
+
+def _facing(mesh: trimesh.Trimesh) -> np.ndarray:
+    """The facets the sensor at the origin sees at under 85° of incidence (beyond, no facet is judged)."""
+    d = EYE - mesh.triangles_center
+    return np.einsum("ij,ij->i", mesh.face_normals, d / np.linalg.norm(d, axis=1, keepdims=True)) > np.cos(
+        np.radians(85.0))
+
+
+def _area(mesh: trimesh.Trimesh, mask: np.ndarray) -> float:
+    return float(mesh.area_faces[mask].sum() / mesh.area_faces.sum()) if mask.size else 0.0
+
+
+def test_sub_triangles_cover_the_facet_in_equal_parts() -> None:
+    for m in range(1, 9):
+        bary = sub_centroids(m)
+        assert len(bary) == m * m and np.allclose(bary.sum(axis=1), 1) and bary.min() > 0
+        assert np.allclose(bary.mean(axis=0), 1 / 3)  # equal areas: the centroids average to the facet's centroid
+    tri = trimesh.Trimesh(np.array([[0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 0.01], [0.01, 0, 0.01],
+                                    [0, 0.01, 0.01]]), np.array([[0, 1, 2], [3, 4, 5]]), process=False)
+    ds = Dataset("t", "as-designed", tri.vertices, faces=tri.faces)
+    _, owner = area_samples(ds, spacing=0.01, cap=64)
+    assert np.bincount(owner).tolist() == [64, 1]  # the large facet at the cap, the small one its centroid
+
+
+def test_noisy_tof_scan_finds_the_removed_cabinet_and_keeps_the_present_one(registry, tmp_path) -> None:
+    # the pipe-rack case: a plate 3.5 m away with a cabinet removed and one still there, σ along the beam ≈ 3 cm
+    plate = _box((0.02, 1.8, 1.2), (3.51, 0, 0))
+    removed = _box((0.3, 0.3, 0.3), (3.05, -0.55, 0.0))
+    present = _box((0.3, 0.3, 0.3), (3.05, 0.55, 0.0))
+    reference = Composite((_item("E0_plate", plate), _item("E0_removed", removed), _item("E0_present", present)))
+    scan = _measured([plate, present], TOF, seed=1)
+    ctx = _ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [scan], reference, tmp_path)
+    rov = registry.get("manual_box").run(ctx)["rov"]
+    facing = {"E0_removed": _facing(removed), "E0_present": _facing(present)}
+    assert facing["E0_removed"].sum() == 4  # the front and the side towards the sensor, at 81°
+    gone = rov.in_view["E0_removed"] & ~rov.matched["E0_removed"]
+    assert _area(removed, gone & facing["E0_removed"]) / _area(removed, facing["E0_removed"]) >= 0.95
+    kept = rov.in_view["E0_present"] & rov.matched["E0_present"]
+    assert _area(present, kept & facing["E0_present"]) / _area(present, facing["E0_present"]) >= 0.95
+    assert not (rov.in_view["E0_present"] & ~rov.matched["E0_present"]).any()
+    assert not (rov.in_view["E0_plate"] & ~rov.matched["E0_plate"]).any()  # the plate behind both is there
+
+
+def test_a_large_facet_is_judged_on_its_area_not_its_middle(registry, tmp_path) -> None:
+    # a 1 m square plate of two triangles at 3 m; the scan finds it only in a 30 cm square around each triangle's
+    # centroid and sees a wall 0.5 m behind everywhere else: by the centroid both triangles are present
+    plate = trimesh.Trimesh(np.array([[3.0, -0.5, -0.5], [3.0, 0.5, -0.5], [3.0, 0.5, 0.5], [3.0, -0.5, 0.5]]),
+                            np.array([[0, 2, 1], [0, 3, 2]]), process=False)
+    reference = Composite((_item("E0_plate", plate),))
+    g = np.arange(-0.7, 0.7, 0.005)
+    y, z = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+    x = np.full(y.size, 3.5)
+    for c in plate.triangles_center:
+        near = (np.abs(y - c[1]) < 0.15) & (np.abs(z - c[2]) < 0.15)
+        x[near] = 3.0
+    pts = np.column_stack([x, y, z])
+    scan = Dataset("scan", "as-is", pts, viewpoints=EYE[None]).with_uncertainty(
+        GaussianUncertainty(np.broadcast_to(np.eye(3) * 1e-6, (len(pts), 3, 3))))
+    ctx = _ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [scan], reference, tmp_path)
+    rov = registry.get("manual_box").run(ctx)["rov"]
+    assert rov.in_view["E0_plate"].all() and not rov.matched["E0_plate"].any()  # removed: most of it is gone
+    kept_share = 2 * 0.3 * 0.3 / 1.0  # the two found squares (each inside its triangle) of the plate's area
+    assert np.allclose(rov.removed_fraction["E0_plate"], 1 - kept_share, atol=0.06)
+    assert np.allclose(rov.seen_fraction["E0_plate"], 1.0)
+
+
+def test_empty_space_counts_as_seen_through_only_within_a_pose_files_range(registry, tmp_path) -> None:
+    # a cube removed from in front of nothing: a scanner whose pose file states its range saw empty space there; a
+    # scan with only a viewpoint says nothing about where it found no surface
+    cube = _box((0.2, 0.2, 0.2), (2.5, 0.4, 0.0))
+    other = _box((0.2, 0.2, 0.2), (2.5, -0.4, 0.0))
+    reference = Composite((_item("E0_cube", cube), _item("E0_other", other)))
+    scan = _measured([other], TOF, seed=2, target=(2.5, 0, 0), density=40000.0)
+    facing = _facing(cube)
+    ctx = _ctx(registry, "sensor_frustum", {}, [scan], reference, tmp_path)
+    rov = registry.get("sensor_frustum").run(ctx)["rov"]
+    assert not rov.in_view["E0_cube"].any()  # no evidence either way: outside the region of view
+    pose = {"viewpoint": [0, 0, 0], "target": [2.5, 0, 0], "scanner": {"kind": "pinhole", "fov_deg": 30.0,
+                                                                       "aspect": 1.0, "max_range": 10.0}}
+    path = tmp_path / "scan.ply"
+    path.with_name("scan_pose.json").write_text(json.dumps(pose))
+    scan = dataclasses.replace(scan, source=SourceInfo(path=str(path), sha256="0" * 64))
+    ctx = _ctx(registry, "sensor_frustum", {}, [scan], reference, tmp_path)
+    rov = registry.get("sensor_frustum").run(ctx)["rov"]
+    assert rov.in_view["E0_cube"][facing].all() and not rov.matched["E0_cube"][facing].any()
+    assert rov.matched["E0_other"][rov.in_view["E0_other"]].all()
+
+
+def test_the_view_does_not_depend_on_the_order_of_the_points(registry, tmp_path) -> None:
+    plate = _box((0.02, 1.4, 1.2), (3.51, 0, 0))
+    removed = _box((0.3, 0.3, 0.3), (3.05, -0.3, 0.0))
+    reference = Composite((_item("E0_plate", plate), _item("E0_removed", removed)))
+    scan = _measured([plate], TOF, seed=3)
+    perm = np.random.default_rng(0).permutation(scan.n_elements)
+    shuffled = Dataset("scan", "as-is", scan.points[perm], viewpoints=EYE[None]).with_uncertainty(
+        GaussianUncertainty(scan.element_covariance()[perm]))
+    views = []
+    for ds in (scan, shuffled):
+        ctx = _ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [ds], reference, tmp_path)
+        rov = registry.get("manual_box").run(ctx)["rov"]
+        views.append((rov.in_view["E0_removed"], rov.matched["E0_removed"], rov.removed_fraction["E0_removed"]))
+    for a, b in zip(*views, strict=True):
+        assert np.array_equal(a, b)

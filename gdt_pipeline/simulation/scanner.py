@@ -111,8 +111,11 @@ def simulate_scan(meshes: list, eye: np.ndarray, target: np.ndarray, spec: Scann
 
 
 def write_scan(scan: SimulatedScan, path: Path, *, object_names: list[str], changed: np.ndarray | None = None,
-               spec: ScannerSpec | None = None, as_mesh: bool = False) -> dict[str, Path]:
-    """Write a scan (PLY points, or a Poisson-reconstructed mesh), its pose and sensor as JSON, and its truth (npz)."""
+               spec: ScannerSpec | None = None, as_mesh: bool = False, poisson_depth: int = 8,
+               poisson_threads: int = -1) -> dict[str, Path]:
+    """Write a scan (PLY points, or a Poisson-reconstructed mesh of octree depth ``poisson_depth``), its pose and
+    sensor as JSON, and its truth (npz). ``poisson_threads=1`` makes the mesh reproducible (threads sum in any
+    order)."""
     import open3d as o3d
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -120,7 +123,8 @@ def write_scan(scan: SimulatedScan, path: Path, *, object_names: list[str], chan
     if as_mesh:
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=20))
         pcd.orient_normals_towards_camera_location(scan.viewpoint)
-        mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=8)
+        mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+            pcd, depth=poisson_depth, n_threads=poisson_threads)
         dens = np.asarray(density)
         mesh.remove_vertices_by_mask(dens < np.quantile(dens, 0.05))  # trim the surface Poisson invents
         o3d.io.write_triangle_mesh(str(path), mesh, write_ascii=False)

@@ -109,13 +109,10 @@ def station_specs(stations: list, meshes: list, L: float, budget: float) -> list
 
 
 def _write_meshes(root: Path, layout: Layout) -> list[Path]:
-    """The CAD (one OBJ per part, the floor first) and the true as-is places of new and moved parts."""
+    """The CAD (one OBJ per part, the floor first) and the true as-is places of new and moved parts
+    (``truth_<name>.obj``)."""
     cad = write_objects(root, {"floor": (layout.floor, True), **{n: (p.mesh, True) for n, p in layout.cad.items()}})
-    write_objects(root, {n: (layout.asis[n].mesh, False) for n, s in layout.states.items() if s == "new"})
-    for name, state in layout.states.items():
-        if state == "moved":
-            (root / f"moved_{name}.obj").write_text(layout.asis[name].mesh.export(
-                file_type="obj", include_normals=False, include_texture=False))
+    write_objects(root, {n: (layout.asis[n].mesh, False) for n, s in layout.states.items() if s in ("new", "moved")})
     return cad
 
 

@@ -115,6 +115,9 @@ def change_scores(scans: SceneScans, store: TwinStore, prev_sets: list, peers: t
     if "m3c2" in peers or "m3c2ep" in peers:
         row: dict[str, Any] = {"notes": notes}
         m3c2_peers(methods, peers, prev_sets, points, t_bool, scans.peer_truth, rng, row, say)
+        if not np.all(weight == 1.0):
+            notes.append("mesh scans: M3C2 runs on the facet centroids; its best radius and registration error are "
+                         "chosen on the facets' majority truth, then scored by area")
     out = {}
     for name, m in methods.items():
         idx = m.get("index")

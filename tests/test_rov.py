@@ -184,7 +184,8 @@ def test_sight_to_the_stations_where_the_plane_of_sight_cuts_through_the_scene(r
         assert not rov.matched["E0_cube"][views[sight]].any()
     assert not views["plane"][face].any()
     assert views["stations"][face].all()
-    assert views["depth"][face].all()  # A saw the far wall through the face's place    # the faces no station faces stay out of view either way
+    assert views["depth"][face].all()  # A saw the far wall through the face's place
+    # the faces no station faces stay out of view either way
     away = np.flatnonzero(np.all(np.einsum("ij,sij->si", cube.face_normals,
                                            np.stack([a, b])[:, None, :] - cube.triangles_center[None]) <= 0, axis=0))
     assert away.size and not views["stations"][away].any()

@@ -1,12 +1,15 @@
 """Visibility from per-station depth images of the recent data: a reference sample is *present* when a station
-measured a surface at its depth (within k σ along the ray), *through* when the station saw past its place (measured
-surface clearly behind it, or nothing within a pose file's range), *hidden* when measured surface stands clearly in
-front of it. No surface is reconstructed: the cost is a sort of the points and a few binary searches per sample.
+measured surface on its plane (within k σ along the facet's normal, the point's and the element's), *seen through*
+when the station measured surface clearly behind it (or nothing at all within a pose file's range), *hidden* when
+measured surface stands clearly in front of it. No surface is reconstructed: the cost is a sort of the points and a
+few binary searches per sample.
 
 A depth image is not a pixel array: its pixels are keys of an angular grid around the station (azimuth and elevation
-in a frame looking at the station's data, the pixel a little wider than the points' angular spacing), and the points
-are sorted by (pixel, range). A sample's 3 × 3 window of pixels then gives, by binary search, how many points lie in
-front of, at and behind its depth.
+in a frame looking at the station's data, the pixel the points' median angular spacing), and the points are sorted
+by pixel. A sample's 3 × 3 window of pixels then gives, by binary search, the points that may lie at its place; each
+is placed against the sample's plane by its signed distance along the normal, where a precise scanner's σ holds even
+at oblique incidence (along the ray, a 5 mm step on a face seen at 80° would hide in 3 cm of depth per pixel), and
+the plurality of the window's points (in front, on the plane, behind) decides.
 """
 
 from __future__ import annotations
@@ -17,10 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-NONE, HIDDEN, THROUGH, PRESENT = 0, 1, 2, 3  # ordered: where stations disagree, the larger code wins
+NONE, HIDDEN, THROUGH, PRESENT = 0, 1, 2, 3  # what the stations together say of a sample
 ROW = np.int64(1) << np.int64(32)  # key = row · 2³² + column; columns stay within ±2³¹ for pixels over 1.5 nrad
 MAX_COS_GRAZING = np.cos(np.radians(85.0))  # facets seen at over 85° of incidence are not judged from that station
-WINDOW_REACH = 2.0  # pixels: the farthest a point of the 3 × 3 window lies from the sample, across the beam
+CHUNK = 100_000  # samples classified at once: bounds the (sample, window point) pairs to a few million
+FOOTPRINT = 0.6  # pixels: a ray passing this close to a facet still tells what is at its edge
 
 
 def view_frame(fwd: np.ndarray) -> np.ndarray:
@@ -44,15 +48,16 @@ class Station:
 
 @dataclass(frozen=True)
 class DepthImage:
-    """A station's measured points sorted by angular pixel and range (see the module docstring)."""
+    """A station's measured points sorted by angular pixel (see the module docstring)."""
 
     eye: np.ndarray
     frame: np.ndarray
     pixel: float  # rad
     keys: np.ndarray  # the occupied pixels' keys, sorted
-    sigma: np.ndarray  # per occupied pixel, the mean σ of its points along the ray
-    ranked: np.ndarray  # per point, its pixel's rank + range / scale, sorted
-    scale: float
+    starts: np.ndarray  # per occupied pixel, where its points start in ``points``
+    counts: np.ndarray  # per occupied pixel, how many points it holds
+    points: np.ndarray  # (N,3) sorted by pixel
+    cov6: np.ndarray  # (N,6) their covariances: xx, yy, zz, xy, xz, yz
     free_range: float
 
 
@@ -65,12 +70,20 @@ def angles(frame: np.ndarray, eye: np.ndarray, pts: np.ndarray) -> tuple[np.ndar
     return np.arctan2(local[:, 1], local[:, 0]), el, rng
 
 
-def pixel_keys(az: np.ndarray, el: np.ndarray, pixel: float, drow: int = 0, dcol: int = 0) -> np.ndarray:
-    """The key of the pixel ``drow`` rows and ``dcol`` columns from each direction's own."""
+def pixel_cells(az: np.ndarray, el: np.ndarray, pixel: float, drow: int = 0, dcol: int = 0
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixel ``drow`` rows and ``dcol`` columns from each direction's own: its key, and the azimuth and
+    elevation of its centre."""
     row = np.floor(el / pixel).astype(np.int64) + drow
     # columns are as wide in true angle on every row: a row's azimuth step grows as 1 / cos(elevation)
-    col = np.floor(az * np.maximum(np.cos((row + 0.5) * pixel), 1e-3) / pixel).astype(np.int64) + dcol
-    return row * ROW + col
+    row_cos = np.maximum(np.cos((row + 0.5) * pixel), 1e-3)
+    col = np.floor(az * row_cos / pixel).astype(np.int64) + dcol
+    return row * ROW + col, (col + 0.5) * pixel / row_cos, (row + 0.5) * pixel
+
+
+def pixel_keys(az: np.ndarray, el: np.ndarray, pixel: float) -> np.ndarray:
+    """The key of each direction's pixel."""
+    return pixel_cells(az, el, pixel)[0]
 
 
 def angular_spacing(az: np.ndarray, el: np.ndarray) -> float:
@@ -82,59 +95,105 @@ def angular_spacing(az: np.ndarray, el: np.ndarray) -> float:
 
 
 def along(cov: np.ndarray, unit: np.ndarray) -> np.ndarray:
-    """σ along each unit direction of each (3,3) covariance (or one covariance for all)."""
-    if cov.ndim == 2:
-        return np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", unit, cov, unit), 0.0))
+    """σ along each unit direction of each (3,3) covariance."""
     return np.sqrt(np.maximum(np.einsum("ij,ijk,ik->i", unit, cov, unit), 0.0))
 
 
+def along6(cov6: np.ndarray, unit: np.ndarray) -> np.ndarray:
+    """Variance along each unit direction of each covariance held as (xx, yy, zz, xy, xz, yz)."""
+    x, y, z = unit.T
+    return (cov6[:, 0] * x * x + cov6[:, 1] * y * y + cov6[:, 2] * z * z
+            + 2 * (cov6[:, 3] * x * y + cov6[:, 4] * x * z + cov6[:, 5] * y * z))
+
+
 def build_image(station: Station, pts: np.ndarray, cov: np.ndarray, pixel_scale: float) -> DepthImage | None:
-    """The station's depth image of its measured points with their covariances (None without points)."""
+    """The station's depth image of its measured points with their (N,3,3) covariances (None without points)."""
     if len(pts) < 2:
         return None
     frame = view_frame((pts - station.eye).mean(axis=0))
-    az, el, rng = angles(frame, station.eye, pts)
+    az, el, _ = angles(frame, station.eye, pts)
     pixel = pixel_scale * max(angular_spacing(az, el), 1e-8)
     key = pixel_keys(az, el, pixel)
-    sig = along(cov, (pts - station.eye) / np.maximum(rng, 1e-300)[:, None])
-    order = np.lexsort((rng, key))
-    key, rng, sig = key[order], rng[order], sig[order]
-    keys, start, counts = np.unique(key, return_index=True, return_counts=True)
-    scale = float(rng.max()) * 1.01 + 1e-9
-    ranked = np.repeat(np.arange(len(keys), dtype=np.float64), counts) + rng / scale
-    return DepthImage(eye=station.eye, frame=frame, pixel=pixel, keys=keys,
-                      sigma=np.add.reduceat(sig, start) / counts, ranked=ranked, scale=scale,
-                      free_range=station.free_range)
+    order = np.argsort(key, kind="stable")
+    keys, starts, counts = np.unique(key[order], return_index=True, return_counts=True)
+    c = cov[order]
+    cov6 = np.column_stack([c[:, 0, 0], c[:, 1, 1], c[:, 2, 2], c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]])
+    return DepthImage(eye=station.eye, frame=frame, pixel=pixel, keys=keys, starts=starts, counts=counts,
+                      points=pts[order], cov6=cov6, free_range=station.free_range)
 
 
-def classify(img: DepthImage, pos: np.ndarray, cov: np.ndarray, normals: np.ndarray | None, k: float) -> np.ndarray:
-    """Per sample (position, covariance, facet normal), what the station saw at its place: NONE, HIDDEN, THROUGH
-    or PRESENT (counts of points in front of, at and behind its depth over its 3 × 3 window)."""
+def window_votes(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndarray | None, k: float
+                 ) -> np.ndarray:
+    """Per sample (position, covariance, the (3,3) corners of its facet or None for points), what this station
+    says of its place, as votes (2, M): points at it and points behind it (an empty window within a pose file's
+    range is one vote behind); none where the station's points mostly stand in front of it (hidden from it)."""
+    out = np.zeros((2, len(pos)), dtype=np.int64)
+    for s0 in range(0, len(pos), CHUNK):
+        part = slice(s0, s0 + CHUNK)
+        out[:, part] = votes_chunk(img, pos[part], cov[part], None if tris is None else tris[part], k)
+    return out
+
+
+def votes_chunk(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndarray | None, k: float
+                ) -> np.ndarray:
+    """``window_votes`` on one chunk of samples: the points of each sample's 3 × 3 window whose rays pass through
+    its facet (within FOOTPRINT pixels of it; all of them for a point sample), placed against its plane (a point
+    sample's plane faces the station): in front of it, at it, or behind it."""
     az, el, depth = angles(img.frame, img.eye, pos)
-    unit = (pos - img.eye) / np.maximum(depth, 1e-300)[:, None]
-    sig_e = along(cov, unit)
-    # a tilted surface's depth changes across the window: allow for it over the window's reach
-    slope = np.zeros(len(pos))
-    judged = np.ones(len(pos), dtype=bool)
-    if normals is not None:
-        cos = np.abs(np.einsum("ij,ij->i", normals, unit)) / np.maximum(np.linalg.norm(normals, axis=1), 1e-300)
-        judged = cos > MAX_COS_GRAZING
-        slope = np.sqrt(np.maximum(1 - cos**2, 0)) / np.maximum(cos, MAX_COS_GRAZING)
-    reach = WINDOW_REACH * img.pixel * depth * slope
+    normals, judged = facing_normals(img.eye, pos, depth, tris)
+    var_e = np.einsum("ij,ijk,ik->i", normals, cov, normals)
     counts = np.zeros((3, len(pos)), dtype=np.int64)  # front, at, behind
     for drow in (-1, 0, 1):
         for dcol in (-1, 0, 1):
-            key = pixel_keys(az, el, img.pixel, drow, dcol)
+            key = pixel_cells(az, el, img.pixel, drow, dcol)[0]
             rank = np.minimum(np.searchsorted(img.keys, key), len(img.keys) - 1)
-            hit = np.flatnonzero(img.keys[rank] == key)
-            r = rank[hit].astype(np.float64)
-            tol = k * np.sqrt(img.sigma[rank[hit]] ** 2 + sig_e[hit] ** 2) + reach[hit]
-            lo = r + np.clip((depth[hit] - tol) / img.scale, 0, 1)
-            hi = r + np.clip((depth[hit] + tol) / img.scale, 0, 1)
-            edges = np.vstack([np.searchsorted(img.ranked, r), np.searchsorted(img.ranked, lo),
-                               np.searchsorted(img.ranked, hi, side="right"), np.searchsorted(img.ranked, r + 1)])
-            counts[:, hit] += np.diff(edges, axis=0)
+            hit = np.flatnonzero((img.keys[rank] == key) & judged)
+            n = img.counts[rank[hit]]
+            sample = np.repeat(hit, n)
+            point = np.repeat(img.starts[rank[hit]] - np.cumsum(n) + n, n) + np.arange(n.sum())
+            if tris is not None:
+                # only rays through the facet say what is at its place: a neighbour's surface beside a thin face,
+                # or one crossing a removed face's plane, is not the face
+                keep = through_facet(img.eye, img.points[point], tris[sample], normals[sample],
+                                     FOOTPRINT * img.pixel * depth[sample])
+                sample, point = sample[keep], point[keep]
+            unit = normals[sample]
+            offset = np.einsum("ij,ij->i", unit, img.points[point] - pos[sample])
+            tol = k * np.sqrt(along6(img.cov6[point], unit) + var_e[sample])
+            side = np.where(offset > tol, 0, np.where(offset < -tol, 2, 1))  # in front, at, behind
+            np.add.at(counts, (side, sample), 1)
     front, at, behind = counts
-    code = np.where(at > 0, PRESENT, np.where(front > 0, HIDDEN, np.where(behind > 0, THROUGH, NONE)))
-    empty = (front + at + behind == 0) & (depth < img.free_range)
-    return np.where(judged, np.where(empty, THROUGH, code), NONE).astype(np.int8)
+    hidden = (front > at) & (front >= behind)
+    empty = judged & (front + at + behind == 0) & (depth < img.free_range)
+    return np.vstack([np.where(hidden, 0, at), np.where(hidden, 0, behind) + empty])
+
+
+def facing_normals(eye: np.ndarray, pos: np.ndarray, depth: np.ndarray, tris: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Per sample, the unit normal of its plane on the side the station sees (towards the station for a point), and
+    whether it is seen at under 85° of incidence."""
+    toward = (eye - pos) / np.maximum(depth, 1e-300)[:, None]
+    if tris is None:
+        return toward, np.ones(len(pos), dtype=bool)
+    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    facing = np.einsum("ij,ij->i", normals, toward)
+    return np.where(facing[:, None] < 0, -normals, normals), np.abs(facing) > MAX_COS_GRAZING
+
+
+def through_facet(eye: np.ndarray, pts: np.ndarray, tris: np.ndarray, normals: np.ndarray, margin: np.ndarray
+                  ) -> np.ndarray:
+    """Whether the ray from the eye to each point meets its facet's plane within ``margin`` of the facet."""
+    ray = pts - eye
+    across = np.einsum("ij,ij->i", normals, ray)
+    t = np.einsum("ij,ij->i", normals, tris[:, 0] - eye) / np.where(np.abs(across) > 1e-300, across, 1e-300)
+    meet = eye + t[:, None] * ray
+    inside = t > 0
+    for i in range(3):  # the three edges; pairs are vectorised
+        a, b, c = tris[:, i], tris[:, (i + 1) % 3], tris[:, (i + 2) % 3]
+        edge = b - a
+        inward = (c - a) - (np.einsum("ij,ij->i", c - a, edge) / np.maximum(
+            np.einsum("ij,ij->i", edge, edge), 1e-300))[:, None] * edge
+        inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-300)
+        inside &= np.einsum("ij,ij->i", meet - a, inward) >= -margin
+    return inside

@@ -12,7 +12,9 @@ import numpy as np
 
 from gdt_pipeline import Composite, Dataset, RegionOfView
 
-from ._depth import HIDDEN, NONE, PRESENT, THROUGH, DepthImage, Station, build_image, classify
+from ._contact import closed_parts, in_contact
+from ._depth import HIDDEN, NONE, PRESENT, THROUGH, DepthImage, Station, build_image, window_votes
+from ._occlusion import blocked_by_confirmed, confirmed_facets
 from ._samples import area_samples
 
 MAX_SAMPLES = 4_000_000  # per reference item: beyond it, facets get fewer samples each
@@ -26,8 +28,8 @@ class DepthView:
     matched: dict[str, np.ndarray] = field(default_factory=dict)
     seen_fraction: dict[str, np.ndarray] = field(default_factory=dict)
     removed_fraction: dict[str, np.ndarray] = field(default_factory=dict)
-    counts: dict[str, int] = field(default_factory=lambda: {"samples": 0, "present": 0, "through": 0, "hidden": 0,
-                                                            "unseen": 0})
+    counts: dict[str, int] = field(default_factory=lambda: {"samples": 0, "present": 0, "through": 0,
+                                                            "hidden_or_no_points": 0, "unseen": 0})
 
 
 def station_points(ds: Dataset) -> tuple[np.ndarray, np.ndarray]:
@@ -51,49 +53,114 @@ def depth_images(stations: list[Station], recent: list[Dataset], pixel_scale: fl
     return images
 
 
+@dataclass
+class Looked:
+    """One reference item's samples: positions, owning elements, states, and per station which samples it saw
+    through."""
+
+    pos: np.ndarray
+    owner: np.ndarray
+    state: np.ndarray
+    through: list[tuple[int, np.ndarray]]
+
+
 def sample_states(ds: Dataset, visible: np.ndarray, inside: np.ndarray, pos: np.ndarray, owner: np.ndarray,
-                  stations: list[Station], images: list[DepthImage | None], p: Any) -> np.ndarray:
-    """The state of each sample: the largest code any station gives it (PRESENT over THROUGH over HIDDEN)."""
-    state = np.zeros(len(pos), dtype=np.int8)
+                  stations: list[Station], images: list[DepthImage | None], p: Any) -> Looked:
+    """The state of each sample from the votes of every station that could see it, summed (a near station's
+    many points outweigh a far one's few): present where at least as many points lie at it as behind it, seen
+    through where more lie behind; HIDDEN where stations looked but had surface in front of it or no points at it;
+    NONE where no station could look."""
+    votes = np.zeros((2, len(pos)), dtype=np.int64)
+    looked_at = np.zeros(len(pos), dtype=bool)
+    through = []
     cov = ds.element_covariance() if ds.uncertainty is not None else np.zeros((ds.n_elements, 3, 3))
+    tris = ds.points[ds.faces] if ds.faces is not None else None
     normals = ds.facet_normals() if ds.faces is not None else None
     todo = np.flatnonzero(inside & visible[owner])
-    for st, img in zip(stations, images, strict=True):
+    for k, (st, img) in enumerate(zip(stations, images, strict=True)):
         if img is None or not todo.size:
             continue
         cand = todo[st.contains(pos[todo])]
         if normals is not None and p.cull_back_faces:
             cand = cand[np.einsum("ij,ij->i", normals[owner[cand]], st.eye - pos[cand]) > 0]
         if cand.size:
-            code = classify(img, pos[cand], cov[owner[cand]], None if normals is None else normals[owner[cand]],
-                            p.k_sigma)
-            state[cand] = np.maximum(state[cand], code)
-        todo = todo[state[todo] != PRESENT]
-    return state
+            v = window_votes(img, pos[cand], cov[owner[cand]], None if tris is None else tris[owner[cand]],
+                             p.k_sigma)
+            votes[:, cand] += v
+            looked_at[cand] = True
+            through.append((k, cand[v[1] > 0]))
+    at, behind = votes
+    state = np.where((at > 0) & (at >= behind), PRESENT, np.where(behind > at, THROUGH,
+                                                                  np.where(looked_at, HIDDEN, NONE)))
+    return Looked(pos, owner, state.astype(np.int8), through)
+
+
+def unblock(looked: Looked, stations: list[Station], confirmed: Any, start: float) -> None:
+    """Samples seen through only along sight lines that a reference facet confirmed present crosses from its
+    front become hidden: a CAD face inside another part (a web's face under its flange) is never seen, though the
+    measured surface around the covering part's edge lies behind it."""
+    through = looked.state == THROUGH
+    clear = np.zeros(len(looked.state), dtype=bool)
+    for k, idx in looked.through:
+        idx = idx[through[idx] & ~clear[idx]]
+        if not idx.size:
+            continue
+        eye = np.broadcast_to(stations[k].eye, (idx.size, 3))
+        direction = eye - looked.pos[idx]
+        length = np.linalg.norm(direction, axis=1, keepdims=True)
+        origin = looked.pos[idx] + direction / np.maximum(length, 1e-300) * np.minimum(start, 0.5 * length)
+        clear[idx[~blocked_by_confirmed(origin, eye, confirmed)]] = True
+    looked.state[through & ~clear] = HIDDEN
+
+
+def element_shares(looked: Looked, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per element: its number of samples, and how many were present and seen through."""
+    per = np.bincount(looked.owner, minlength=n).astype(np.float64)
+    present = np.bincount(looked.owner, weights=looked.state == PRESENT, minlength=n)
+    return per, present, np.bincount(looked.owner, weights=looked.state == THROUGH, minlength=n)
+
+
+def matched(looked: Looked, n: int) -> np.ndarray:
+    """The elements confirmed present: seen, and found present on at least as many samples as seen through."""
+    _, present, through = element_shares(looked, n)
+    return (present > 0) & (present >= through)
 
 
 def depth_view(reference: Composite, rov: RegionOfView, recent: list[Dataset], stations: list[Station],
                spacing: float, p: Any) -> DepthView:
     """In view, matched and the shares of area seen and removed, per reference item."""
     images = depth_images(stations, recent, p.pixel_scale)
-    out = DepthView()
+    parts = closed_parts(reference)
+    extent = max((float(np.ptp(it.dataset.points, axis=0).max()) for it in reference.items if len(it.dataset.points)),
+                 default=1.0)
+    looks = []
     for item in reference.items:
         ds = item.dataset
-        n = ds.n_elements
         area_spacing = max(spacing, np.sqrt(_total_area(ds) / MAX_SAMPLES)) if ds.faces is not None else spacing
         pos, owner = area_samples(ds, area_spacing, p.samples_per_facet)
-        state = sample_states(ds, item.visible, rov.contains(pos), pos, owner, stations, images, p)
-        per = np.bincount(owner, minlength=n).astype(np.float64)
-        present = np.bincount(owner, weights=state == PRESENT, minlength=n)
-        through = np.bincount(owner, weights=state == THROUGH, minlength=n)
+        looked = rov.contains(pos)
+        if ds.faces is not None:
+            # float32 ray casting near the data: the probe steps clear of round-off at the scene's size
+            looked &= ~in_contact(pos, ds.facet_normals()[owner], parts, max(0.02 * spacing, 1e-5 * extent))
+        looks.append(sample_states(ds, item.visible, looked, pos, owner, stations, images, p))
+    if p.confirmed_occlude:
+        confirmed = confirmed_facets([(it.dataset, matched(lk, it.dataset.n_elements))
+                                      for it, lk in zip(reference.items, looks, strict=True)
+                                      if it.dataset.faces is not None])
+        for lk in looks:
+            unblock(lk, stations, confirmed, 3e-3 * spacing)
+    out = DepthView()
+    for item, lk in zip(reference.items, looks, strict=True):
+        per, present, through = element_shares(lk, item.dataset.n_elements)
         seen = present + through
         out.in_view[item.key] = seen > 0
-        out.matched[item.key] = (seen > 0) & (present >= through)
+        out.matched[item.key] = matched(lk, item.dataset.n_elements)
         out.seen_fraction[item.key] = seen / np.maximum(per, 1)
         out.removed_fraction[item.key] = through / np.maximum(per, 1)
-        for name, code in (("present", PRESENT), ("through", THROUGH), ("hidden", HIDDEN), ("unseen", NONE)):
-            out.counts[name] += int(np.sum(state == code))
-        out.counts["samples"] += len(state)
+        for name, code in (("present", PRESENT), ("through", THROUGH), ("hidden_or_no_points", HIDDEN),
+                           ("unseen", NONE)):
+            out.counts[name] += int(np.sum(lk.state == code))
+        out.counts["samples"] += len(lk.state)
     return out
 
 
@@ -128,9 +195,10 @@ def look_depth(ctx: Any, rov: RegionOfView, parts: list[str], stations: list[Sta
                 "unmatched_in_view": sum(int((v & ~view.matched[k]).sum()) for k, v in view.in_view.items())}
     ctx.report(region_of_view={"parts": parts, "sight": "depth", "stations": len(stations), "k_sigma": p.k_sigma,
                                "spacing": spacing, "samples": view.counts, **elements})
-    ctx.log.info("region of view (depth images, %d stations): %d samples: %d present, %d seen through, %d hidden, "
-                 "%d unseen; %d elements in view of which %d removed", len(stations), view.counts["samples"],
-                 view.counts["present"], view.counts["through"], view.counts["hidden"], view.counts["unseen"],
+    ctx.log.info("region of view (depth images, %d stations): %d samples: %d present, %d seen through, %d hidden "
+                 "or without points, %d outside every station's view; %d elements in view of which %d removed",
+                 len(stations), view.counts["samples"], view.counts["present"], view.counts["through"],
+                 view.counts["hidden_or_no_points"], view.counts["unseen"],
                  elements["in_view"], elements["unmatched_in_view"])
     return {"rov": RegionOfView(rov.vertices, rov.faces, rov.parts, in_view=view.in_view, matched=view.matched,
                                 method="; ".join(parts) + "; depth images", seen_fraction=view.seen_fraction,

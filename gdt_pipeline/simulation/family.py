@@ -7,7 +7,8 @@ the as-is scene in which 1–3 parts were added, 1–2 removed and 1–2 moved, 
 - ``tof``: a low-cost ToF camera (``tof_low_cost`` × 0.3–1.0, from about the pipe-rack report's 1 mm + 2.5 mm·r²
   to the preset's 2 mm + 8 mm·r² along the beam) 1.5–4.5 m from the scene, point scans;
 - ``precise``: a structured-light scanner (``structured_light`` × 0.5–2) 0.5–1.5 m away, point scans;
-- ``precise-mesh``: the same, each scan written as a reconstructed (Poisson) mesh.
+- ``precise-mesh``: the same, each scan written as a mesh the way a scanner's software makes one: its range image
+  triangulated, not across depth jumps (``range_mesh``).
 
 Beside the scans: the true sensor profile (``sensor.yaml``), per-scan truth (``_truth.npz``; per facet with its
 area for mesh scans), ``truth_E1.npz`` (per CAD facet: area, visible and removed fractions; per part its state and
@@ -49,7 +50,6 @@ FAMILIES: dict[str, FamilySpec] = {
 POINT_BUDGET = (100_000, 200_000)  # total points of a scene (all stations), drawn uniformly
 PILOT_DENSITY = 1000.0  # points/m² of the ray-count pilot that sets each station's density
 PROFILE_FILE = "sensor.yaml"
-POISSON_DEPTH = 7  # a mesh scan of ~30-50 k facets per station: depth 8 quadruples them (and the run's time)
 
 
 @dataclass(frozen=True)
@@ -129,10 +129,9 @@ def _scan_all(root: Path, layout: Layout, stations: list, specs: list[ScannerSpe
         changed = point_changed(scan.clean, cad)
         changed_all.append(changed)
         written = write_scan(scan, root / f"scan_E1_s{k}.ply", object_names=names, changed=changed, spec=spec,
-                             as_mesh=fam.as_mesh, poisson_depth=POISSON_DEPTH,
-                             poisson_threads=1)
+                             as_mesh=fam.as_mesh, mesher="grid")
         if fam.as_mesh:
-            clean_mesh_scan(written["scan"], scan.points)
+            clean_mesh_scan(written["scan"], scan.points)  # drops the facets the reader would (no area)
             with np.load(written["truth"]) as t:
                 arrays = {key: t[key] for key in t.files}
             arrays.update(mesh_facet_truth(written["scan"], asis, cad))
@@ -175,7 +174,8 @@ def make_family_scene(family: str, out_dir: str | Path, seed: int) -> FamilyScen
     R = float(rng.uniform(*fam.distance))
     L = R * float(rng.uniform(0.55, 0.8))
     pose_files = bool(rng.random() < 0.5)
-    budget = float(rng.uniform(*POINT_BUDGET))
+    # a mesh scan has two facets per point: half the points keep its elements (and run time) at a point scan's
+    budget = float(rng.uniform(*POINT_BUDGET)) / (2.0 if fam.as_mesh else 1.0)
     # moves of 1–10 × the range σ at the scene's range, but not under the truth's own tolerance: a smaller move
     # changes no point or facet by the truth's rule
     move_scale = max(float(profile.sigmas(np.array([R]), None, "m")[0][0]), TOLERANCE)

@@ -52,9 +52,11 @@ class SimulatedScan:
     sigma_lateral: np.ndarray
     registration_error: np.ndarray  # 4x4 applied to the noisy points (identity when none)
     target: np.ndarray | None = None  # where the scanner looked (with the viewpoint and the spec: its frustum)
+    pixel: np.ndarray | None = None  # per point, its ray's index in the scanner's image (row-major over ``grid``)
+    grid: tuple[int, int] | None = None  # the image's rows and columns
 
 
-def _rays(spec: ScannerSpec, eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+def _rays(spec: ScannerSpec, eye: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
     import open3d as o3d
 
     dist = float(np.linalg.norm(target - eye))
@@ -65,7 +67,8 @@ def _rays(spec: ScannerSpec, eye: np.ndarray, target: np.ndarray) -> np.ndarray:
         rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
             fov_deg=spec.fov_deg, center=target.tolist(), eye=eye.tolist(), up=[0.0, 0.0, 1.0], width_px=width,
             height_px=height)
-        return rays.numpy().reshape(-1, 6).astype(np.float64)
+        grid = rays.shape[0], rays.shape[1]
+        return rays.numpy().reshape(-1, 6).astype(np.float64), grid
     fwd = (target - eye) / dist
     az0 = np.arctan2(fwd[1], fwd[0])
     el0 = np.arcsin(np.clip(fwd[2], -1, 1))
@@ -75,7 +78,7 @@ def _rays(spec: ScannerSpec, eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     el = el0 + np.arange(-span_el / 2, span_el / 2, step)
     a, e = np.meshgrid(az, el, indexing="ij")
     d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1).reshape(-1, 3)
-    return np.hstack([np.broadcast_to(eye, d.shape), d])
+    return np.hstack([np.broadcast_to(eye, d.shape), d]), (len(az), len(el))
 
 
 def simulate_scan(meshes: list, eye: np.ndarray, target: np.ndarray, spec: ScannerSpec, rng: np.random.Generator,
@@ -86,7 +89,7 @@ def simulate_scan(meshes: list, eye: np.ndarray, target: np.ndarray, spec: Scann
     profile = profile or PRESETS[spec.profile]
     eye, target = np.asarray(eye, dtype=np.float64), np.asarray(target, dtype=np.float64)
     scene = raycasting_scene(meshes)
-    rays = _rays(spec, eye, target)
+    rays, grid = _rays(spec, eye, target)
     ans = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))
     length = np.linalg.norm(rays[:, 3:], axis=1)
     dist = ans["t_hit"].numpy().astype(np.float64) * length
@@ -107,20 +110,28 @@ def simulate_scan(meshes: list, eye: np.ndarray, target: np.ndarray, spec: Scann
         noisy = noisy @ err[:3, :3].T + err[:3, 3]
     return SimulatedScan(points=noisy, clean=clean, object_id=ans["geometry_ids"].numpy()[hit].astype(np.int64),
                          facet_id=ans["primitive_ids"].numpy()[hit].astype(np.int64), viewpoint=eye,
-                         sigma_range=s_r, sigma_lateral=s_l, registration_error=err, target=target)
+                         sigma_range=s_r, sigma_lateral=s_l, registration_error=err, target=target,
+                         pixel=np.flatnonzero(hit), grid=grid)
 
 
 def write_scan(scan: SimulatedScan, path: Path, *, object_names: list[str], changed: np.ndarray | None = None,
                spec: ScannerSpec | None = None, as_mesh: bool = False, poisson_depth: int = 8,
-               poisson_threads: int = -1) -> dict[str, Path]:
-    """Write a scan (PLY points, or a Poisson-reconstructed mesh of octree depth ``poisson_depth``), its pose and
-    sensor as JSON, and its truth (npz). ``poisson_threads=1`` makes the mesh reproducible (threads sum in any
-    order)."""
+               poisson_threads: int = -1, mesher: str = "poisson") -> dict[str, Path]:
+    """Write a scan (PLY points, or a mesh: Poisson-reconstructed at octree depth ``poisson_depth``, or with
+    ``mesher="grid"`` the scanner's own range image triangulated), its pose and sensor as JSON, and its truth (npz).
+    ``poisson_threads=1`` makes the Poisson mesh reproducible (threads sum in any order)."""
     import open3d as o3d
 
     path.parent.mkdir(parents=True, exist_ok=True)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scan.points))
-    if as_mesh:
+    if as_mesh and mesher == "grid":
+        from .range_mesh import range_image_mesh
+
+        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(scan.points),
+                                         o3d.utility.Vector3iVector(range_image_mesh(scan)))
+        mesh.remove_unreferenced_vertices()
+        o3d.io.write_triangle_mesh(str(path), mesh, write_ascii=False)
+    elif as_mesh:
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=20))
         pcd.orient_normals_towards_camera_location(scan.viewpoint)
         mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(

@@ -143,6 +143,7 @@ def votes_chunk(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndar
     normals, judged = facing_normals(img.eye, pos, depth, tris)
     var_e = np.einsum("ij,ijk,ik->i", normals, cov, normals)
     counts = np.zeros((3, len(pos)), dtype=np.int64)  # front, at, behind
+    pooled = np.zeros((2, len(pos)))  # over the points not in front: sum of offsets, sum of their variances
     for drow in (-1, 0, 1):
         for dcol in (-1, 0, 1):
             key = pixel_cells(az, el, img.pixel, drow, dcol)[0]
@@ -159,10 +160,20 @@ def votes_chunk(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndar
                 sample, point = sample[keep], point[keep]
             unit = normals[sample]
             offset = np.einsum("ij,ij->i", unit, img.points[point] - pos[sample])
-            tol = k * np.sqrt(along6(img.cov6[point], unit) + var_e[sample])
+            var_p = along6(img.cov6[point], unit)
+            tol = k * np.sqrt(var_p + var_e[sample])
             side = np.where(offset > tol, 0, np.where(offset < -tol, 2, 1))  # in front, at, behind
             np.add.at(counts, (side, sample), 1)
+            back = side > 0
+            np.add.at(pooled, (0, sample[back]), offset[back])
+            np.add.at(pooled, (1, sample[back]), var_p[back])
     front, at, behind = counts
+    # each point within k σ of the plane, their mean clearly behind it: a surface a noisy scanner measured a few
+    # σ behind a removed part's place (the floor under a pipe, 5 cm below at σ 3 cm) is not the part
+    n = at + behind
+    mean = pooled[0] / np.maximum(n, 1)
+    behind_all = (n >= 2) & (mean < -k * np.sqrt(pooled[1] / np.maximum(n, 1) ** 2 + var_e))
+    at, behind = np.where(behind_all, 0, at), np.where(behind_all, n, behind)
     hidden = (front > at) & (front >= behind)
     empty = judged & (front + at + behind == 0) & (depth < img.free_range)
     return np.vstack([np.where(hidden, 0, at), np.where(hidden, 0, behind) + empty])

@@ -83,7 +83,9 @@ def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path) -> list[F
         tv = th / (p.aspect or sc["aspect"])
         far = p.far or float(sc["max_range"])
         verts, faces = _frustum_mesh(eye, target - eye, (-th, th), (-tv, tv), p.near, far)
-        return [Frustum(verts, faces, f"{ds.name}: pinhole frustum from its pose file", eye, far)]
+        # a scanner's empty rays are empty space; a reconstructed mesh's holes are where its surface was not kept
+        free = far if ds.kind == "points" else 0.0
+        return [Frustum(verts, faces, f"{ds.name}: pinhole frustum from its pose file", eye, free)]
     if ds.viewpoints is None or not len(pts):
         return []
     out = []

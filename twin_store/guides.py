@@ -59,6 +59,12 @@ def define_segment(stage: Usd.Stage, epoch_id: str, seg: dict) -> None:
                              Vt.DoubleArray.FromNumpy(np.asarray(seg["part_pose"], dtype=np.float64).ravel())),
             "gdt:fitRms": (Sdf.ValueTypeNames.Double, float(seg["fit_rms"])),
             "gdt:fitFitness": (Sdf.ValueTypeNames.Double, float(seg["fit_fitness"]))})
+    if seg.get("moved_from") is not None:
+        attrs.update({
+            "gdt:movedFrom": (Sdf.ValueTypeNames.Int, int(seg["moved_from"])),
+            "gdt:movedItem": (Sdf.ValueTypeNames.String, str(seg["moved_item"])),
+            "gdt:displacement": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg["displacement"]))),
+            "gdt:rotationDeg": (Sdf.ValueTypeNames.Double, float(seg["rotation_deg"]))})
     for name, (tname, value) in attrs.items():
         prim.CreateAttribute(name, tname).Set(value)
     for key, idx in seg["members"].items():
@@ -90,4 +96,7 @@ def _read_segment(prim: Usd.Prim) -> dict:
         out.update({"part": str(get("gdt:part")), "part_centre": np.array(get("gdt:partCentre")),
                     "part_pose": np.asarray(get("gdt:partPose"), dtype=np.float64).reshape(4, 4),
                     "fit_rms": float(get("gdt:fitRms")), "fit_fitness": float(get("gdt:fitFitness"))})
+    if get("gdt:movedFrom") is not None:
+        out.update({"moved_from": int(get("gdt:movedFrom")), "moved_item": str(get("gdt:movedItem")),
+                    "displacement": np.array(get("gdt:displacement")), "rotation_deg": float(get("gdt:rotationDeg"))})
     return out

@@ -57,7 +57,19 @@ def format_family_table(result: dict[str, Any]) -> str:
         lines.append(f"{s['label'][:32]:<32}{cells}")
     lines.append("worst: the lowest F1 and removal recall, the highest false-removal share of the scenes; "
                  "* tuned on each scene's truth: an upper bound no user has")
+    lines.append(moved_line(rows))
     return "\n".join(lines)
+
+
+def moved_line(rows: list[dict[str, Any]]) -> str:
+    """How many moved parts the twin recorded as moved, the displacement errors, and records naming unmoved parts."""
+    parts = [p for r in rows for p in (r.get("moved") or {}).get("parts", {}).values()]
+    errors = [p["error_mm"] for p in parts if p["recorded"]]
+    wrong = sum(len((r.get("moved") or {}).get("wrong_records", [])) for r in rows)
+    text = f"moved parts recorded as moved: {len(errors)} of {len(parts)}"
+    if errors:
+        text += f", displacement error median {np.median(errors):.2f} mm, largest {max(errors):.2f} mm"
+    return text + f"; moved records naming a part that did not move: {wrong}"
 
 
 def family_markdown(result: dict[str, Any]) -> str:
@@ -75,4 +87,5 @@ def family_markdown(result: dict[str, Any]) -> str:
                  "of the visible area of removed and moved parts' CAD facets marked removed; false removals: share of "
                  "the visible area of unchanged parts marked removed; worst: lowest F1 and recall, highest false "
                  "removals over the scenes; * tuned on each scene's truth.")
+    lines += ["", moved_line(result["rows"]) + "."]
     return "\n".join(lines) + "\n"

@@ -192,4 +192,18 @@ def score_scene(workflow: Path, twin: Path, registry: Registry, peers: tuple[str
     methods = change_scores(scans, store, prev_sets, peers, rng, notes, say)
     truth = scans.cat("truth")
     return {"elements": len(truth), "changed_share": float(np.average(truth, weights=scans.cat("weight"))),
-            "methods": methods, "removal": removal_scores(et, sets, scans.cat("points")), "notes": notes}
+            "methods": methods, "removal": removal_scores(et, sets, scans.cat("points")), "notes": notes,
+            "moved": moved_scores(json.loads(str(et["displacements"])), store.read_segments("E1"))}
+
+
+def moved_scores(displacements: dict[str, list[float]], segments: list[dict]) -> dict[str, Any]:
+    """Per moved part: whether a new segment records it as moved, and the error of the recorded displacement (mm);
+    and the moved records that name a part that did not move."""
+    recorded = {str(g["moved_item"]): np.asarray(g["displacement"]) for g in segments if g.get("moved_item")}
+    parts = {}
+    for name, shift in displacements.items():
+        key = next((k for k in recorded if k.endswith(f"_cad_{name}")), None)
+        parts[name] = {"recorded": key is not None, "error_mm": None if key is None else
+                       round(float(np.linalg.norm(recorded[key] - np.asarray(shift)) * 1000), 2)}
+    wrong = [k for k in recorded if not any(k.endswith(f"_cad_{n}") for n in displacements)]
+    return {"parts": parts, "wrong_records": wrong}

@@ -76,6 +76,12 @@ class Segment:
     part_centre: np.ndarray | None = None
     fit_rms: float = float("nan")
     fit_fitness: float = float("nan")
+    # a new segment that a removed part of the twin explains: that part moved (fusion): the removed segment's id,
+    # the part's item key, the displacement of its centre and the rotation angle of the fitted pose
+    moved_from: int | None = None
+    moved_item: str | None = None
+    displacement: np.ndarray | None = None
+    rotation_deg: float = float("nan")
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gdt_pipeline import Composite, Correspondences, Dataset, MixtureUncertainty
-from gdt_pipeline.geometry import estimate_normals, quad_inv3
+from gdt_pipeline.geometry import quad_inv3
 
 
 @dataclass(frozen=True)
@@ -54,17 +54,25 @@ def query_samples(ds: Dataset, rng: np.random.Generator, density: float | None, 
 def sampling_covariance(pos: np.ndarray, cov: np.ndarray, neighbours: int = 12) -> tuple[np.ndarray, np.ndarray]:
     """Which points are sampled more sparsely than they are precise (largest σ under half the spacing s, their
     median distance to their three nearest neighbours), and for those the covariance of where the surface lies
-    around them: (s/2)² in the tangent plane (PCA normal of ``neighbours`` points), none along the normal."""
+    around them: (s/2)² in the tangent plane of their ``neighbours`` nearest points, none along its normal; on an
+    edge or a corner, where those points fit no plane, (s/2)² in every direction."""
     if len(pos) < 4:
         return np.zeros(len(pos), dtype=bool), np.zeros((len(pos), 3, 3))
-    d, _ = cKDTree(pos).query(pos, k=4)
-    half = 0.5 * np.median(d[:, 1:], axis=1)
-    sparse = np.linalg.eigvalsh(cov)[:, -1] < half**2
+    k = min(neighbours, len(pos))
+    tree = cKDTree(pos)
     out = np.zeros((len(pos), 3, 3))
-    if sparse.any():
-        normal = estimate_normals(pos, min(neighbours, len(pos)))[sparse]
-        tangent = np.eye(3)[None] - normal[:, :, None] * normal[:, None, :]
-        out[sparse] = half[sparse, None, None] ** 2 * tangent
+    sparse = np.zeros(len(pos), dtype=bool)
+    for s0 in range(0, len(pos), 200_000):  # chunks bound the (n, k, 3) neighbourhoods
+        d, j = tree.query(pos[s0:s0 + 200_000], k=k)
+        half = 0.5 * np.median(d[:, 1:4], axis=1)
+        sp = np.linalg.eigvalsh(cov[s0:s0 + 200_000])[:, -1] < half**2
+        nb = pos[j[sp]] - pos[j[sp]].mean(axis=1, keepdims=True)
+        lam, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+        normal = vec[:, :, 0]
+        flat = lam[:, 0] <= 0.01 * lam.sum(axis=1)  # surface variation: a plane, not an edge
+        tangent = np.where(flat[:, None, None], np.eye(3)[None] - normal[:, :, None] * normal[:, None, :], np.eye(3))
+        out[s0 + np.flatnonzero(sp)] = half[sp, None, None] ** 2 * tangent
+        sparse[s0:s0 + 200_000] = sp
     return sparse, out
 
 

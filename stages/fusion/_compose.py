@@ -12,6 +12,7 @@ import numpy as np
 from gdt_pipeline import ChangeState, Composite, CompositeItem, FusionReason, RegionOfView, Segment, StageContext
 
 from ._fitting import fit_parts
+from ._moved import moved
 from ._replace import Decision, replacements
 from ._segments import segments
 
@@ -137,6 +138,8 @@ def _segmented(ctx: StageContext, items: list[CompositeItem], n_ref: int, remove
     if ctx.params.parts:
         found = fit_parts(ctx, items, found)
     found += segments(items, removed_now, "removed", ctx.params, len(found))
+    if ctx.params.moved:
+        found = moved(ctx, items, found)
     if found:
         real = [g for g in found if not g.artefact]
         ctx.report(segments={"new": sum(g.kind == "new" for g in real),

@@ -35,6 +35,9 @@ class SegmentParams(BaseModel):
                                                                  "(default: 3 × their typical spacing, at least "
                                                                  "1.5σ of their largest axis).")
     min_segment_size: int = Field(10, ge=1, description="Segments with fewer elements are reported as artefacts.")
+    moved: bool = Field(True, description="Where a removed segment is one part of the twin and that part's own model "
+                                          "fits a new segment (multi-start ICP), record the new segment as the part "
+                                          "moved, with its displacement.")
 
 
 def spread(ds: Dataset, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -5,7 +5,7 @@ measured surface stands clearly in front of it. No surface is reconstructed: the
 few binary searches per sample.
 
 A depth image is not a pixel array: its pixels are keys of an angular grid around the station (azimuth and elevation
-in a frame looking at the station's data, the pixel the points' median angular spacing), and the points are sorted
+in a frame looking at the station's data, the pixel the angle between its neighbouring rays), and the points are sorted
 by pixel. A sample's 3 × 3 window of pixels then gives, by binary search, the points that may lie at its place; each
 is placed against the sample's plane by its signed distance along the normal, where a precise scanner's σ holds even
 at oblique incidence (along the ray, a 5 mm step on a face seen at 80° would hide in 3 cm of depth per pixel), and
@@ -94,6 +94,16 @@ def angular_spacing(az: np.ndarray, el: np.ndarray) -> float:
     return float(np.median(d[:, 1]))
 
 
+def ray_pitch(az: np.ndarray, el: np.ndarray) -> float:
+    """The angle between a station's neighbouring rays: the square root of the solid angle its points cover (cells
+    of four nearest-neighbour spacings that hold a point) per point. Not the nearest-neighbour spacing itself, which
+    lateral noise shrinks well below the scanner's pitch (a ToF at 4.5 m: 0.8 against 3 mrad)."""
+    nearest = max(angular_spacing(az, el), 1e-8)
+    cell = 4.0 * nearest
+    covered = np.unique(pixel_keys(az, el, cell)).size * cell**2
+    return max(float(np.sqrt(covered / len(az))), nearest)
+
+
 def along(cov: np.ndarray, unit: np.ndarray) -> np.ndarray:
     """σ along each unit direction of each (3,3) covariance."""
     return np.sqrt(np.maximum(np.einsum("ij,ijk,ik->i", unit, cov, unit), 0.0))
@@ -112,7 +122,7 @@ def build_image(station: Station, pts: np.ndarray, cov: np.ndarray, pixel_scale:
         return None
     frame = view_frame((pts - station.eye).mean(axis=0))
     az, el, _ = angles(frame, station.eye, pts)
-    pixel = pixel_scale * max(angular_spacing(az, el), 1e-8)
+    pixel = pixel_scale * ray_pitch(az, el)
     key = pixel_keys(az, el, pixel)
     order = np.argsort(key, kind="stable")
     keys, starts, counts = np.unique(key[order], return_index=True, return_counts=True)

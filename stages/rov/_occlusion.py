@@ -43,7 +43,7 @@ class OcclusionParams(BaseModel):
     k_sigma: PositiveFloat = Field(3.0, description="sight: depth: measured surface within k σ (the point's and the "
                                                     "element's, along the ray) of an element's depth is at it.")
     pixel_scale: PositiveFloat = Field(1.0, description="sight: depth: the depth image's pixel as a multiple of the "
-                                                        "points' median angular spacing.")
+                                                        "angle between neighbouring rays.")
     samples_per_facet: int = Field(64, ge=1, le=4096, description="sight: depth: the most samples a reference facet "
                                                                   "is judged on (about one per point spacing²).")
 

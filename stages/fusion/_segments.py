@@ -33,7 +33,8 @@ class SegmentParams(BaseModel):
                                                                       "part whose model fits, its pose and centre.")
     segment_radius: float | None = Field(None, gt=0, description="Elements closer than this are one object "
                                                                  "(default: 3 × their typical spacing, at least "
-                                                                 "1.5σ of their largest axis).")
+                                                                 "1.5σ of their largest axis up to 5 % of their "
+                                                                 "extent).")
     min_segment_size: int = Field(10, ge=1, description="Segments with fewer elements are reported as artefacts.")
     moved: bool = Field(True, description="Where a removed segment is one part of the twin and that part's own model "
                                           "fits a new segment (multi-start ICP), record the new segment as the part "
@@ -78,7 +79,10 @@ def _labels(pos_a: np.ndarray, sig_a: np.ndarray, params: SegmentParams) -> np.n
     radius = params.segment_radius
     if radius is None:
         gap = tree.query(pos_a, k=2)[0][:, 1] if len(pos_a) > 1 else np.zeros(1)
-        radius = max(3.0 * float(np.median(gap)), 1.5 * float(np.median(sig_a)), 1e-9)
+        # a noisy scan's σ (30 cm for a ToF at 4.5 m) would join the whole scene: the σ term stops at 5 % of the
+        # elements' extent, where the radius guard below would refuse a default it set itself
+        extent = float(np.linalg.norm(np.ptp(pos_a, axis=0)))
+        radius = max(3.0 * float(np.median(gap)), min(1.5 * float(np.median(sig_a)), 0.05 * extent), 1e-9)
     # a units mistake makes the radius span the whole data: refuse before the pair list takes all memory
     check_radius(tree, radius, "fusion", "grouping changed elements into segments (`segment_radius`)")
     pairs = tree.query_pairs(radius, output_type="ndarray")

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import GdtError
 from ..plugins import Registry, load_registry
 from ..runner import run_workflow
 from .family_report import summarise
@@ -89,9 +90,15 @@ def evaluate_family(family: str, *, scenes: int, seed: int, out: str | Path, pee
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    rows = []
+    rows, failed = [], []
     for k in range(scenes):
-        rows.append(evaluate_scene(family, k, seed, out, registry, peers, say))
+        try:
+            rows.append(evaluate_scene(family, k, seed, out, registry, peers, say))
+        except GdtError as exc:  # a scene the workflow refuses is a finding to report, not the end of the family
+            failed.append({"scene": k, "seed": scene_seed(seed, k), "error": str(exc)})
+            say(f"scene {k + 1}/{scenes} (seed {scene_seed(seed, k)}): FAILED: {exc}")
+            continue
         say(_line(k, scenes, rows[-1]))
     return {"family": family, "seed": seed, "scenes": scenes, "out": str(out), "peers": list(peers),
-            "seconds": round(time.perf_counter() - started, 1), "summary": summarise(rows), "rows": rows}
+            "seconds": round(time.perf_counter() - started, 1), "summary": summarise(rows), "rows": rows,
+            "failed": failed}

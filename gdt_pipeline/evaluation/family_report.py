@@ -58,6 +58,7 @@ def format_family_table(result: dict[str, Any]) -> str:
     lines.append("worst: the lowest F1 and removal recall, the highest false-removal share of the scenes; "
                  "* tuned on each scene's truth: an upper bound no user has")
     lines.append(moved_line(rows))
+    lines += [f"FAILED scene {f['scene']} (seed {f['seed']}): {f['error']}" for f in result.get("failed", [])]
     return "\n".join(lines)
 
 
@@ -88,4 +89,5 @@ def family_markdown(result: dict[str, Any]) -> str:
                  "the visible area of unchanged parts marked removed; worst: lowest F1 and recall, highest false "
                  "removals over the scenes; * tuned on each scene's truth.")
     lines += ["", moved_line(result["rows"]) + "."]
+    lines += [f"Failed: scene {f['scene']} (seed {f['seed']}): {f['error']}" for f in result.get("failed", [])]
     return "\n".join(lines) + "\n"

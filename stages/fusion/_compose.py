@@ -37,7 +37,8 @@ def chain_check(name: str, needs_rov: bool) -> Callable[[frozenset[str]], str | 
 check_slots = chain_check("keep_unchanged", False)
 
 
-def _carried(reference: Composite, rov: RegionOfView | None) -> tuple[list[CompositeItem], dict[int, np.ndarray]]:
+def _carried(reference: Composite, rov: RegionOfView | None, whole_parts: bool = False
+             ) -> tuple[list[CompositeItem], dict[int, np.ndarray]]:
     """The known items with this epoch's states and reasons, and per item the elements removed now."""
     items: list[CompositeItem] = []
     removed_now: dict[int, np.ndarray] = {}
@@ -50,6 +51,8 @@ def _carried(reference: Composite, rov: RegionOfView | None) -> tuple[list[Compo
         if rov is not None and it.key in rov.in_view:
             view, matched = rov.in_view[it.key], rov.matched[it.key]
             removed = view & ~matched & it.visible
+            if whole_parts and _gone_whole(it, rov, view, matched):
+                removed = it.visible.copy()
             state = np.where(state == ChangeState.OUTSIDE_ROV, ChangeState.UNCHANGED, state).astype(np.uint8)
             state[it.visible & ~view] = ChangeState.OUTSIDE_ROV
             state[removed] = ChangeState.REMOVED
@@ -63,6 +66,16 @@ def _carried(reference: Composite, rov: RegionOfView | None) -> tuple[list[Compo
         items.append(dataclasses.replace(it, state=state, visible=visible, reason=reason, reason_ratio=ratio,
                                          **areas))
     return items, removed_now
+
+
+def _gone_whole(it: CompositeItem, rov: RegionOfView, view: np.ndarray, matched: np.ndarray) -> bool:
+    """Whether a mesh part was seen on at least a tenth of its (visible) area, all of that seen through: a rigid
+    part is there or not, so its faces no station saw went with it."""
+    if it.dataset.faces is None or it.key not in rov.seen_fraction or (view & matched & it.visible).any():
+        return False
+    tri = it.dataset.points[it.dataset.faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) * it.visible
+    return bool(area.sum() > 0 and (area * rov.removed_fraction[it.key]).sum() >= 0.1 * area.sum())
 
 
 def _areas(it: CompositeItem, rov: RegionOfView) -> dict[str, np.ndarray]:
@@ -150,7 +163,7 @@ def _segmented(ctx: StageContext, items: list[CompositeItem], n_ref: int, remove
 def fuse(ctx: StageContext, policy: str | None) -> dict[str, Any]:
     """The composite of this epoch under ``policy`` (None: keep_unchanged, no replacement)."""
     reference = ctx.get("reference") or Composite()
-    items, removed_now = _carried(reference, ctx.get("rov"))
+    items, removed_now = _carried(reference, ctx.get("rov"), ctx.params.whole_parts)
     decision = None
     if policy is not None and reference.items:
         decision = _replace(ctx, items, policy)

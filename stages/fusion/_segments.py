@@ -36,6 +36,9 @@ class SegmentParams(BaseModel):
                                                                  "1.5σ of their largest axis up to 5 % of their "
                                                                  "extent).")
     min_segment_size: int = Field(10, ge=1, description="Segments with fewer elements are reported as artefacts.")
+    whole_parts: bool = Field(True, description="A part of the twin (one mesh item, e.g. one CAD solid) of which a "
+                                                "station saw at least a tenth of the area and all of that through "
+                                                "(none of it present) is removed whole: its unseen faces too.")
     moved: bool = Field(True, description="Where a removed segment is one part of the twin and that part's own model "
                                           "fits a new segment (multi-start ICP), record the new segment as the part "
                                           "moved, with its displacement.")

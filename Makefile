@@ -22,6 +22,7 @@ bench: setup
 	$(BIN)/python bench/engine_throughput.py
 	$(BIN)/python bench/voxel_mle.py
 	$(BIN)/python bench/distances.py
+	$(BIN)/python bench/rov_depth.py
 	$(BIN)/gdt eval workflows/test_scene.yaml --json out/eval/test_scene/result.json
 	$(BIN)/gdt eval workflows/fuselage.yaml --json out/eval/fuselage/result.json
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.fusion._segments import SegmentParams, _labels
+from stages.fusion._segments import SegmentParams, segment_labels
 
 
 def test_a_noisy_scans_default_radius_groups_objects_instead_of_refusing() -> None:
@@ -15,5 +15,5 @@ def test_a_noisy_scans_default_radius_groups_objects_instead_of_refusing() -> No
     b = rng.normal([2.0, 2.0, 0.0], 0.05, (1500, 3))
     corner = np.array([[-1.0, -1.0, -0.5], [3.0, 3.0, 0.5]])
     pos = np.vstack([a, b, corner])
-    label = _labels(pos, np.full(len(pos), 0.5), SegmentParams())
+    label = segment_labels(pos, np.full(len(pos), 0.5), SegmentParams())
     assert len(set(label[:1500])) == 1 and len(set(label[1500:3000])) == 1 and label[0] != label[1500]

@@ -73,7 +73,7 @@ def _masked_elements(items: list[CompositeItem], masks: dict[int, np.ndarray]
     return np.vstack(pos), np.concatenate(owner), np.concatenate(elem), np.concatenate(score), np.concatenate(sig)
 
 
-def _labels(pos_a: np.ndarray, sig_a: np.ndarray, params: SegmentParams) -> np.ndarray:
+def segment_labels(pos_a: np.ndarray, sig_a: np.ndarray, params: SegmentParams) -> np.ndarray:
     """Connected-component label of each element in the graph of elements closer than the segment radius."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -103,7 +103,7 @@ def segments(items: list[CompositeItem], masks: dict[int, np.ndarray], kind: str
     if stacked is None:
         return []
     pos_a, owner_a, elem_a, score_a, sig_a = stacked
-    label = _labels(pos_a, sig_a, params)
+    label = segment_labels(pos_a, sig_a, params)
     order = np.argsort(label, kind="stable")
     bounds = np.flatnonzero(np.diff(label[order])) + 1
     out = []

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from gdt_pipeline import ChangeState, Composite, CompositeItem, Dataset, EpochInfo, GaussianUncertainty, RegionOfView
-from gdt_pipeline.plugins import StageContext, load_registry
+from gdt_pipeline import ChangeState, Composite, Dataset, GaussianUncertainty, RegionOfView
+from gdt_pipeline.plugins import load_registry
+from tests.rov_helpers import cad_item, stage_ctx
 
 
 @pytest.fixture(scope="module")
@@ -24,23 +25,6 @@ def _plane_mesh(x: float, half: float, n: int = 20) -> tuple[np.ndarray, np.ndar
     a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
     faces = np.vstack([np.column_stack([a, c, b]), np.column_stack([a, d, c])])
     return verts, faces
-
-
-def _ctx(registry, stage: str, params: dict, recent: list[Dataset], reference: Composite, tmp_path) -> StageContext:
-    import logging
-
-    spec = registry.get(stage)
-    info = EpochInfo(id="E1", index=1, role="as-is", seed=0, workflow_dir=tmp_path, units="m")
-    slots = {"recent": recent, "reference": reference, "epoch": info}
-    return StageContext(stage=spec, params=spec.params(**params), slots=slots, epoch=info,
-                        rng=np.random.default_rng(0), seed=0, log=logging.getLogger("test"))
-
-
-def _item(key: str, mesh: trimesh.Trimesh) -> CompositeItem:
-    ds = Dataset(key, "as-designed", mesh.vertices, faces=mesh.faces)
-    n = len(mesh.faces)
-    return CompositeItem(key, ds, "E0", np.zeros(n, np.uint8), np.full(n, np.nan), np.zeros(n, np.int32),
-                         np.ones(n, bool))
 
 
 def _scan(points: np.ndarray, eye: np.ndarray, name: str = "scan") -> Dataset:
@@ -74,13 +58,13 @@ def test_removed_object_in_view_is_removed_and_an_object_hidden_behind_another_s
     cube_b = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
     cube_b.apply_translation((3.0, 0.6, 0))
     back = trimesh.Trimesh(*_plane_mesh(4.0, 1.5), process=False)  # a backdrop that is still there
-    reference = Composite((_item("E0_a", cube_a), _item("E0_b", cube_b), _item("E0_back", back)))
+    reference = Composite((cad_item("E0_a", cube_a), cad_item("E0_b", cube_b), cad_item("E0_back", back)))
     # recent: a wall at x = 2 in front of B (non-watertight: an open point grid) and the backdrop
     wall = _grid(2.0, 0.2, 1.0, -0.4, 0.4, 0.01)
     backdrop = _grid(4.0, -1.5, 1.5, -1.5, 1.5, 0.02)
     backdrop = backdrop[~((backdrop[:, 1] > 0.2 * 2) & (np.abs(backdrop[:, 2]) < 0.4 * 2))]  # the wall's shadow
     scan = _scan(np.vstack([wall, backdrop]), eye)
-    ctx = _ctx(registry, "manual_box", {"lower": [0.5, -2, -2], "upper": [5, 2, 2], "sight": sight}, [scan],
+    ctx = stage_ctx(registry, "manual_box", {"lower": [0.5, -2, -2], "upper": [5, 2, 2], "sight": sight}, [scan],
                reference, tmp_path)
     rov = registry.get("manual_box").run(ctx)["rov"]
     view_a, view_b = rov.in_view["E0_a"], rov.in_view["E0_b"]
@@ -90,7 +74,7 @@ def test_removed_object_in_view_is_removed_and_an_object_hidden_behind_another_s
     assert not rov.matched["E0_a"][view_a].any()
     assert rov.matched["E0_back"][rov.in_view["E0_back"]].mean() > 0.95
     fusion = registry.get("keep_unchanged")
-    fctx = _ctx(registry, "keep_unchanged", {}, [scan], reference, tmp_path)
+    fctx = stage_ctx(registry, "keep_unchanged", {}, [scan], reference, tmp_path)
     fctx.slots["rov"] = rov
     fctx.slots["change"] = []
     # the fusion demands a change per recent dataset once a reference exists: give the scan "unchanged"
@@ -110,7 +94,7 @@ def test_removed_object_in_view_is_removed_and_an_object_hidden_behind_another_s
 def test_parity_on_a_non_watertight_mesh_and_two_disconnected_components(registry, tmp_path) -> None:
     eye = np.array([0.0, 0.0, 0.0])
     target = trimesh.Trimesh(*_plane_mesh(5.0, 0.5, 4), process=False)
-    reference = Composite((_item("E0_t", target),))
+    reference = Composite((cad_item("E0_t", target),))
     for layers, hidden in (((2.0,), True), ((2.0, 3.0), False)):
         # recent data: one or two open sheets between the sensor and the target (as meshes: no reconstruction)
         recent = []
@@ -119,11 +103,11 @@ def test_parity_on_a_non_watertight_mesh_and_two_disconnected_components(registr
             recent.append(Dataset(f"sheet{k}", "as-is", v, faces=f, viewpoints=eye[None, :]).with_uncertainty(
                 GaussianUncertainty(np.broadcast_to(np.eye(3) * 1e-8, (len(f), 3, 3)))))
         box = {"lower": [0.5, -2, -2], "upper": [6, 2, 2], "sight": "plane"}
-        ctx = _ctx(registry, "manual_box", box, recent, reference, tmp_path)
+        ctx = stage_ctx(registry, "manual_box", box, recent, reference, tmp_path)
         view = registry.get("manual_box").run(ctx)["rov"].in_view["E0_t"]
         # one crossing: odd, hidden; two disconnected sheets: even, in view by the paper's parity rule
         assert (not view.any()) if hidden else view.all()
-        ctx = _ctx(registry, "manual_box", {**box, "rule": "any"}, recent, reference, tmp_path)
+        ctx = stage_ctx(registry, "manual_box", {**box, "rule": "any"}, recent, reference, tmp_path)
         assert not registry.get("manual_box").run(ctx)["rov"].in_view["E0_t"].any()
 
 
@@ -139,7 +123,7 @@ def test_sensor_frustum_from_the_pose_file(registry, tmp_path) -> None:
     scan = _scan(_grid(3.0, -0.5, 0.5, -0.3, 0.3, 0.02), eye)
     scan = Dataset(scan.name, "as-is", scan.points, source=SourceInfo(path="s.ply", sha256=""),
                    uncertainty=scan.uncertainty, viewpoints=scan.viewpoints)
-    ctx = _ctx(registry, "sensor_frustum", {"occlusion": False}, [scan], Composite(), tmp_path)
+    ctx = stage_ctx(registry, "sensor_frustum", {"occlusion": False}, [scan], Composite(), tmp_path)
     rov = registry.get("sensor_frustum").run(ctx)["rov"]
     # horizontal half-angle 30°, vertical atan(tan 30° / 2) = 16.1°, range 0.05 .. 5
     pts = np.array([[4.0, 4.0 * np.tan(np.radians(29)), 0], [4.0, 4.0 * np.tan(np.radians(31)), 0],
@@ -172,7 +156,7 @@ def test_sight_to_the_stations_where_the_plane_of_sight_cuts_through_the_scene(r
     # calls the face hidden, the station rule sees it from A and calls it removed
     a, b = np.array([-2.0, 0.0, 0.0]), np.array([2.0, 3.0, 0.0])
     cube = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
-    reference = Composite((_item("E0_cube", cube),))
+    reference = Composite((cad_item("E0_cube", cube),))
     x, z = np.meshgrid(np.arange(-0.8, -0.2, 0.01), np.arange(-0.3, 0.3, 0.01), indexing="ij")
     plate = np.column_stack([x.ravel(), np.full(x.size, 0.45), z.ravel()])
     recent = [_scan(_grid(3.0, -1, 1, -1, 1, 0.02), a, "seen_from_a"), _scan(plate, b, "seen_from_b")]
@@ -180,7 +164,7 @@ def test_sight_to_the_stations_where_the_plane_of_sight_cuts_through_the_scene(r
     box = {"lower": [-1, -1, -1], "upper": [1, 1, 1]}
     views = {}
     for sight in ("plane", "stations", "depth"):
-        ctx = _ctx(registry, "manual_box", {**box, "sight": sight}, recent, reference, tmp_path)
+        ctx = stage_ctx(registry, "manual_box", {**box, "sight": sight}, recent, reference, tmp_path)
         rov = registry.get("manual_box").run(ctx)["rov"]
         views[sight] = rov.in_view["E0_cube"]
         assert not rov.matched["E0_cube"][views[sight]].any()
@@ -202,17 +186,17 @@ def test_a_confirmed_thin_part_hides_the_face_right_behind_it(registry, tmp_path
     plate.apply_translation((2.002, 0, 0))
     cube = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
     cube.apply_translation((2.104, 0, 0))
-    reference = Composite((_item("E0_plate", plate), _item("E0_cube", cube)))
+    reference = Composite((cad_item("E0_plate", plate), cad_item("E0_cube", cube)))
     scan = _scan(_grid(2.0, -0.3, 0.3, -0.3, 0.3, 0.01), eye)
     front = np.flatnonzero(cube.face_normals[:, 0] < -0.9)
     views = {}
     for confirmed in (False, True):
-        ctx = _ctx(registry, "manual_box", {"lower": [1, -1, -1], "upper": [3, 1, 1], "sight": "plane",
+        ctx = stage_ctx(registry, "manual_box", {"lower": [1, -1, -1], "upper": [3, 1, 1], "sight": "plane",
                                             "confirmed_occlude": confirmed}, [scan], reference, tmp_path)
         rov = registry.get("manual_box").run(ctx)["rov"]
         views[confirmed] = rov.in_view["E0_cube"][front]
         assert rov.matched["E0_plate"][plate.face_normals[:, 0] < -0.9].all()
     assert views[False].all() and not views[True].any()
     # a depth image needs no such help: the plate's measured surface stands 4 mm (40 σ) in front of the face
-    ctx = _ctx(registry, "manual_box", {"lower": [1, -1, -1], "upper": [3, 1, 1]}, [scan], reference, tmp_path)
+    ctx = stage_ctx(registry, "manual_box", {"lower": [1, -1, -1], "upper": [3, 1, 1]}, [scan], reference, tmp_path)
     assert not registry.get("manual_box").run(ctx)["rov"].in_view["E0_cube"][front].any()

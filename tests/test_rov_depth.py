@@ -5,18 +5,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import logging
 
 import numpy as np
 import pytest
 import trimesh
 
-from gdt_pipeline import Composite, CompositeItem, Dataset, EpochInfo, GaussianUncertainty
-from gdt_pipeline.plugins import StageContext, load_registry
+from gdt_pipeline import Composite, Dataset, GaussianUncertainty
+from gdt_pipeline.plugins import load_registry
 from gdt_pipeline.sensors import SensorProfile
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
 from gdt_pipeline.types import SourceInfo
 from stages.rov._samples import area_samples, sub_centroids
+from tests.rov_helpers import cad_item, stage_ctx
 
 EYE = np.zeros(3)
 # the low-cost ToF of the pipe-rack report: along the beam (1 mm + 2.5 mm·r²)/cos θ, across it 1 mm + 0.8 mm·r
@@ -27,21 +27,6 @@ TOF = SensorProfile(name="tof_report", units="m", range_sigma=[0.001, 0.0, 0.002
 @pytest.fixture(scope="module")
 def registry():
     return load_registry()
-
-
-def _ctx(registry, stage: str, params: dict, recent: list[Dataset], reference: Composite, tmp_path) -> StageContext:
-    spec = registry.get(stage)
-    info = EpochInfo(id="E1", index=1, role="as-is", seed=0, workflow_dir=tmp_path, units="m")
-    slots = {"recent": recent, "reference": reference, "epoch": info}
-    return StageContext(stage=spec, params=spec.params(**params), slots=slots, epoch=info,
-                        rng=np.random.default_rng(0), seed=0, log=logging.getLogger("test"))
-
-
-def _item(key: str, mesh: trimesh.Trimesh) -> CompositeItem:
-    ds = Dataset(key, "as-designed", mesh.vertices, faces=mesh.faces)
-    n = len(mesh.faces)
-    return CompositeItem(key, ds, "E0", np.zeros(n, np.uint8), np.full(n, np.nan), np.zeros(n, np.int32),
-                         np.ones(n, bool))
 
 
 def _box(extents: tuple[float, float, float], centre: tuple[float, float, float]) -> trimesh.Trimesh:
@@ -90,9 +75,10 @@ def test_noisy_tof_scan_finds_the_removed_cabinet_and_keeps_the_present_one(regi
     plate = _box((0.02, 1.8, 1.2), (3.51, 0, 0))
     removed = _box((0.3, 0.3, 0.3), (3.05, -0.55, 0.0))
     present = _box((0.3, 0.3, 0.3), (3.05, 0.55, 0.0))
-    reference = Composite((_item("E0_plate", plate), _item("E0_removed", removed), _item("E0_present", present)))
+    reference = Composite((cad_item("E0_plate", plate), cad_item("E0_removed", removed),
+                           cad_item("E0_present", present)))
     scan = _measured([plate, present], TOF, seed=1)
-    ctx = _ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [scan], reference, tmp_path)
+    ctx = stage_ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [scan], reference, tmp_path)
     rov = registry.get("manual_box").run(ctx)["rov"]
     facing = {"E0_removed": _facing(removed), "E0_present": _facing(present)}
     assert facing["E0_removed"].sum() == 4  # the front and the side towards the sensor, at 81°
@@ -109,7 +95,7 @@ def test_a_large_facet_is_judged_on_its_area_not_its_middle(registry, tmp_path) 
     # centroid and sees a wall 0.5 m behind everywhere else: by the centroid both triangles are present
     plate = trimesh.Trimesh(np.array([[3.0, -0.5, -0.5], [3.0, 0.5, -0.5], [3.0, 0.5, 0.5], [3.0, -0.5, 0.5]]),
                             np.array([[0, 2, 1], [0, 3, 2]]), process=False)
-    reference = Composite((_item("E0_plate", plate),))
+    reference = Composite((cad_item("E0_plate", plate),))
     g = np.arange(-0.7, 0.7, 0.005)
     y, z = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
     x = np.full(y.size, 3.5)
@@ -119,7 +105,7 @@ def test_a_large_facet_is_judged_on_its_area_not_its_middle(registry, tmp_path) 
     pts = np.column_stack([x, y, z])
     scan = Dataset("scan", "as-is", pts, viewpoints=EYE[None]).with_uncertainty(
         GaussianUncertainty(np.broadcast_to(np.eye(3) * 1e-6, (len(pts), 3, 3))))
-    ctx = _ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [scan], reference, tmp_path)
+    ctx = stage_ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [scan], reference, tmp_path)
     rov = registry.get("manual_box").run(ctx)["rov"]
     assert rov.in_view["E0_plate"].all() and not rov.matched["E0_plate"].any()  # removed: most of it is gone
     kept_share = 2 * 0.3 * 0.3 / 1.0  # the two found squares (each inside its triangle) of the plate's area
@@ -132,10 +118,10 @@ def test_empty_space_counts_as_seen_through_only_within_a_pose_files_range(regis
     # scan with only a viewpoint says nothing about where it found no surface
     cube = _box((0.2, 0.2, 0.2), (2.5, 0.4, 0.0))
     other = _box((0.2, 0.2, 0.2), (2.5, -0.4, 0.0))
-    reference = Composite((_item("E0_cube", cube), _item("E0_other", other)))
+    reference = Composite((cad_item("E0_cube", cube), cad_item("E0_other", other)))
     scan = _measured([other], TOF, seed=2, target=(2.5, 0, 0), density=40000.0)
     facing = _facing(cube)
-    ctx = _ctx(registry, "sensor_frustum", {}, [scan], reference, tmp_path)
+    ctx = stage_ctx(registry, "sensor_frustum", {}, [scan], reference, tmp_path)
     rov = registry.get("sensor_frustum").run(ctx)["rov"]
     assert not rov.in_view["E0_cube"].any()  # no evidence either way: outside the region of view
     pose = {"viewpoint": [0, 0, 0], "target": [2.5, 0, 0], "scanner": {"kind": "pinhole", "fov_deg": 30.0,
@@ -143,7 +129,7 @@ def test_empty_space_counts_as_seen_through_only_within_a_pose_files_range(regis
     path = tmp_path / "scan.ply"
     path.with_name("scan_pose.json").write_text(json.dumps(pose))
     scan = dataclasses.replace(scan, source=SourceInfo(path=str(path), sha256="0" * 64))
-    ctx = _ctx(registry, "sensor_frustum", {}, [scan], reference, tmp_path)
+    ctx = stage_ctx(registry, "sensor_frustum", {}, [scan], reference, tmp_path)
     rov = registry.get("sensor_frustum").run(ctx)["rov"]
     assert rov.in_view["E0_cube"][facing].all() and not rov.matched["E0_cube"][facing].any()
     assert rov.matched["E0_other"][rov.in_view["E0_other"]].all()
@@ -152,14 +138,14 @@ def test_empty_space_counts_as_seen_through_only_within_a_pose_files_range(regis
 def test_the_view_does_not_depend_on_the_order_of_the_points(registry, tmp_path) -> None:
     plate = _box((0.02, 1.4, 1.2), (3.51, 0, 0))
     removed = _box((0.3, 0.3, 0.3), (3.05, -0.3, 0.0))
-    reference = Composite((_item("E0_plate", plate), _item("E0_removed", removed)))
+    reference = Composite((cad_item("E0_plate", plate), cad_item("E0_removed", removed)))
     scan = _measured([plate], TOF, seed=3)
     perm = np.random.default_rng(0).permutation(scan.n_elements)
     shuffled = Dataset("scan", "as-is", scan.points[perm], viewpoints=EYE[None]).with_uncertainty(
         GaussianUncertainty(scan.element_covariance()[perm]))
     views = []
     for ds in (scan, shuffled):
-        ctx = _ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [ds], reference, tmp_path)
+        ctx = stage_ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [ds], reference, tmp_path)
         rov = registry.get("manual_box").run(ctx)["rov"]
         views.append((rov.in_view["E0_removed"], rov.matched["E0_removed"], rov.removed_fraction["E0_removed"]))
     for a, b in zip(*views, strict=True):

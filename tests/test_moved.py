@@ -81,3 +81,15 @@ def test_moved_records_are_scored_against_the_true_displacements() -> None:
     assert out["parts"]["box_3"] == {"recorded": True, "error_mm": 1.0}
     assert out["parts"]["panel_2"] == {"recorded": False, "error_mm": None}
     assert out["wrong_records"] == ["E0_cad_pipe_1"]
+
+
+def test_gdt_log_lists_the_moved_parts() -> None:
+    from gdt_pipeline.cli.twin_commands import moved_lines
+
+    class Store:
+        def read_segments(self, epoch_id: str) -> list[dict]:
+            return [{"id": 0, "kind": "new"}, {"id": 2, "kind": "new", "moved_item": "E0_cad_box", "moved_from": 7,
+                                               "displacement": np.array([0.3, -0.4, 0.0]), "rotation_deg": 0.5}]
+
+    assert moved_lines(Store(), "E1") == ["E1: E0_cad_box moved by 0.5 (0.3, -0.4, 0), turned 0.5°; new segment 2, "
+                                          "removed segment 7"]

@@ -70,6 +70,21 @@ def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
                            for i in r.inputs)
         table.add_row(r.id, r.role, r.finished, inputs, counts_text(r.counts))
     Console(width=max(140, out_console.width)).print(table)
+    for r in records:
+        for line in moved_lines(store, r.id):
+            click.echo(line)
+
+
+def moved_lines(store: Any, epoch_id: str) -> list[str]:
+    """One line per part an epoch recorded as moved: which part, by how much, from which removed segment."""
+    out = []
+    for seg in store.read_segments(epoch_id):
+        if seg.get("moved_item"):
+            d = seg["displacement"]
+            out.append(f"{epoch_id}: {seg['moved_item']} moved by {float(np.linalg.norm(d)):.4g} "
+                       f"({', '.join(f'{x:.4g}' for x in d)}), turned {seg['rotation_deg']:.3g}°; new segment "
+                       f"{seg['id']}, removed segment {seg['moved_from']}")
+    return out
 
 
 @click.command()

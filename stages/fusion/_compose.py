@@ -73,8 +73,7 @@ def _gone_whole(it: CompositeItem, rov: RegionOfView, view: np.ndarray, matched:
     part is there or not, so its faces no station saw went with it."""
     if it.dataset.faces is None or it.key not in rov.seen_fraction or (view & matched & it.visible).any():
         return False
-    tri = it.dataset.points[it.dataset.faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) * it.visible
+    area = 0.5 * np.linalg.norm(it.dataset.facet_normals(), axis=1) * it.visible
     return bool(area.sum() > 0 and (area * rov.removed_fraction[it.key]).sum() >= 0.1 * area.sum())
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from gdt_pipeline import CompositeItem, Segment, StageContext
 
-from .parts import PartModel, fit_part
+from .parts import PartModel, fit_part, mesh_model
 
 SAMPLES = 5000  # surface samples of a part's model for ICP
 FIT_POINTS = 800  # segment points ICP uses (the fit is scored on all of them)
@@ -26,12 +26,8 @@ def item_model(it: CompositeItem, rng: np.random.Generator) -> PartModel:
     import trimesh
 
     mesh = trimesh.Trimesh(it.dataset.points, it.dataset.faces, process=False)
-    pts, face = trimesh.sample.sample_surface(mesh, SAMPLES, seed=int(rng.integers(2**31)))
-    centre = np.asarray(mesh.center_mass if mesh.is_watertight else mesh.centroid, dtype=np.float64)
-    diagonal = float(np.linalg.norm(mesh.extents))
-    return PartModel(name=it.key, path=Path(it.key), sha256=hashlib.sha256(it.dataset.points.tobytes()).hexdigest(),
-                     samples=np.asarray(pts), normals=np.asarray(mesh.face_normals[face]), centre=centre,
-                     diagonal=diagonal, max_rms=0.02 * diagonal, vertices=it.dataset.points, faces=it.dataset.faces)
+    return mesh_model(it.key, Path(it.key), hashlib.sha256(it.dataset.points.tobytes()).hexdigest(), mesh, None,
+                      int(rng.integers(2**31)), SAMPLES)
 
 
 def _one_item(g: Segment, keys: dict[str, CompositeItem]) -> CompositeItem | None:

@@ -72,13 +72,21 @@ def load_part(name: str, path: Path, max_rms: float | None, seed: int, samples: 
         raise ValueError(f"part {name!r}: cannot read its model {path}: {exc}") from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError(f"part {name!r}: {path} holds no triangles")
+    return mesh_model(name, path, hashlib.sha256(path.read_bytes()).hexdigest(), mesh, max_rms, seed, samples)
+
+
+def mesh_model(name: str, path: Path, sha256: str, mesh, max_rms: float | None, seed: int, samples: int
+               ) -> PartModel:  # mesh: trimesh.Trimesh
+    """A mesh as a part model: its surface sampled, its centre and diagonal, the RMS a fit may reach (default 2 % of
+    the diagonal)."""
+    import trimesh
+
     pts, face = trimesh.sample.sample_surface(mesh, samples, seed=seed)
     # a closed part's centre is its solid's; an open surface has only its area centroid
     centre = np.asarray(mesh.center_mass if mesh.is_watertight else mesh.centroid, dtype=np.float64)
     diagonal = float(np.linalg.norm(mesh.extents))
-    return PartModel(name=name, path=path, sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
-                     samples=np.asarray(pts, dtype=np.float64), normals=np.asarray(mesh.face_normals[face]),
-                     centre=centre, diagonal=diagonal,
+    return PartModel(name=name, path=path, sha256=sha256, samples=np.asarray(pts, dtype=np.float64),
+                     normals=np.asarray(mesh.face_normals[face]), centre=centre, diagonal=diagonal,
                      max_rms=float(max_rms) if max_rms is not None else 0.02 * diagonal,
                      vertices=np.asarray(mesh.vertices, dtype=np.float64), faces=np.asarray(mesh.faces, dtype=np.int64))
 

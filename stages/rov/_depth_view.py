@@ -165,8 +165,7 @@ def depth_view(reference: Composite, rov: RegionOfView, recent: list[Dataset], s
 
 
 def _total_area(ds: Dataset) -> float:
-    tri = ds.points[ds.faces]
-    return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+    return float(0.5 * np.linalg.norm(ds.facet_normals(), axis=1).sum())
 
 
 def default_stations(p: Any, recent: list[Dataset], rov: RegionOfView) -> list[Station]:

@@ -54,6 +54,7 @@ class BhattacharyyaParams(BaseModel):
 def _bhattacharyya(ctx: StageContext) -> dict[str, Any]:
     p = ctx.params
     methods: set[str] = set()
+    paths: dict[str, int] = {}
 
     def measure(g: PairGroup, rng: np.random.Generator) -> tuple[np.ndarray, None, np.ndarray]:
         u_q, u_r = g.u_q, g.u_r
@@ -61,12 +62,15 @@ def _bhattacharyya(ctx: StageContext) -> dict[str, Any]:
             n = len(g.idx)
             u_q = u_q if isinstance(u_q, GaussianUncertainty) else GaussianUncertainty(u_q.covariance(n))
             u_r = u_r if isinstance(u_r, GaussianUncertainty) else GaussianUncertainty(u_r.covariance(n))
-        bd, err, method = bhattacharyya(g.mu_q, u_q, g.mu_r, u_r, rng=rng, eps=p.epsilon, samples=p.samples)
+        bd, err, method = bhattacharyya(g.mu_q, u_q, g.mu_r, u_r, rng=rng, eps=p.epsilon, samples=p.samples,
+                                        paths=paths)
         methods.add(method)
         return bd, None, err
 
     out = run_pair_measure(ctx, "bhattacharyya", measure, tolerance=p.epsilon)
-    ctx.report(methods=sorted(methods))
+    total = sum(paths.values())
+    ctx.report(methods=sorted(methods), gaussian_box_pairs=total,
+               path_shares={k: round(v / total, 6) for k, v in sorted(paths.items())} if total else {})
     return out
 
 

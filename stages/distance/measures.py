@@ -26,6 +26,8 @@ from scipy.special import ndtr
 from gdt_pipeline import BoxUncertainty, GaussianUncertainty, MixtureUncertainty
 from gdt_pipeline.geometry import det3, quad_inv3, sym3
 
+from .box_probability import PATHS, box_probability
+
 K_SQRT = (8.0 * np.pi) ** 0.75
 _CHUNK = 20_000
 
@@ -100,27 +102,70 @@ _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 ORDERS = (10, 14, 20, 28, 40, 56)  # Gauss–Legendre orders tried in turn; the cost grows with order²
 
 
-def bc_gauss_box(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUncertainty, *, eps: float = 1e-6
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Bhattacharyya coefficient of Gaussian–box pairs and its per-pair error bound.
+def bc_gauss_box(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUncertainty, *, eps: float = 1e-6,
+                 paths: dict[str, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Bhattacharyya coefficient of Gaussian–box pairs and its per-pair error bound (≤ ``eps`` wherever a path
+    settles the pair).
 
-    For turned pairs the quadrature order is raised per pair until two successive orders agree to ``eps`` on BC;
-    the bound reported is that last difference (pairs that never agree keep the highest order's value and bound).
+    Axis-aligned pairs take the closed form. The rest go through ``box_probability`` (bound screens, then exact
+    inclusion–exclusion with bounded or integrated corners); pairs it cannot settle within ``eps`` are integrated by
+    Genz quadrature, the order raised per pair until two successive orders agree to ``eps`` on BC (the bound reported
+    is that last difference; pairs that never agree keep the highest order's value and bound). ``paths`` (if given)
+    counts the pairs per path.
     """
+    n = len(mu)
+    bc, err = np.empty(n), np.zeros(n)
+    for s in range(0, n, _PAIR_CHUNK):
+        sl = slice(s, min(n, s + _PAIR_CHUNK))
+        bc[sl], err[sl] = _bc_gauss_box_chunk(mu[sl], cov[sl], center[sl], box.take(np.arange(sl.start, sl.stop)),
+                                              eps, paths)
+    return bc, err
+
+
+_PAIR_CHUNK = 200_000  # pairs per pass: bounds the (n, 3, 3) temporaries of the box frame
+
+
+def _bc_gauss_box_chunk(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUncertainty, eps: float,
+                        paths: dict[str, int] | None) -> tuple[np.ndarray, np.ndarray]:
     n = len(mu)
     m, c, h = _box_frame(mu, cov, box, center)
     # √|Σ| of the original Gaussian: |2Σ| = 8|Σ|
     scale = K_SQRT * (det3(c) / 8.0) ** 0.25 / np.sqrt(np.prod(2.0 * h, axis=1))
     sd = np.sqrt(np.diagonal(c, axis1=1, axis2=2))
-    off = np.abs(np.stack([c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]], 1))
-    aligned = np.all(off <= 1e-12 * np.stack([sd[:, 0] * sd[:, 1], sd[:, 0] * sd[:, 2], sd[:, 1] * sd[:, 2]], 1), 1)
+    off = np.stack([c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]], 1)
+    sd_pairs = np.stack([sd[:, 0] * sd[:, 1], sd[:, 0] * sd[:, 2], sd[:, 1] * sd[:, 2]], 1)
+    aligned = np.all(np.abs(off) <= 1e-12 * sd_pairs, 1)
     prob = np.empty(n)
     err = np.zeros(n)
+    lo, hi = (-h - m) / sd, (h - m) / sd
     if aligned.any():
-        lo, hi = (-h[aligned] - m[aligned]) / sd[aligned], (h[aligned] - m[aligned]) / sd[aligned]
-        prob[aligned] = np.prod(_phi_diff(lo, hi), axis=1)
-    todo = np.flatnonzero(~aligned)
-    prev = _box_prob_genz(m[todo], c[todo], h[todo], ORDERS[0]) if todo.size else np.zeros(0)
+        prob[aligned] = np.prod(_phi_diff(lo[aligned], hi[aligned]), axis=1)
+    turned = np.flatnonzero(~aligned)
+    prob[turned], err[turned], path = box_probability(lo[turned], hi[turned], off[turned] / sd_pairs[turned],
+                                                      scale[turned], eps)
+    err[turned] *= scale[turned]
+    todo = turned[path == 2]
+    if paths is not None:
+        _count(paths, "closed form", int(aligned.sum()))
+        for k, name in enumerate(PATHS):
+            _count(paths, name, int(np.sum(path == k)))
+    if todo.size:
+        prob[todo], err[todo] = _genz_adaptive(m[todo], c[todo], h[todo], scale[todo], eps)
+    return scale * prob, err
+
+
+def _count(paths: dict[str, int], name: str, k: int) -> None:
+    if k:
+        paths[name] = paths.get(name, 0) + k
+
+
+def _genz_adaptive(m: np.ndarray, c: np.ndarray, h: np.ndarray, scale: np.ndarray, eps: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Box probabilities by Genz quadrature, the order raised per pair until two orders agree to ``eps`` on BC."""
+    prob, err = np.empty(len(m)), np.zeros(len(m))
+    todo = np.arange(len(m))
+    prev = _box_prob_genz(m, c, h, ORDERS[0])
+    prob[:] = prev
     for order in ORDERS[1:]:
         if not todo.size:
             break
@@ -129,7 +174,7 @@ def bc_gauss_box(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUn
         prob[todo], err[todo] = cur, diff
         keep = diff > eps
         todo, prev = todo[keep], cur[keep]
-    return scale * prob, err
+    return prob, err
 
 
 def bc_box_box(c1: np.ndarray, b1: BoxUncertainty, c2: np.ndarray, b2: BoxUncertainty
@@ -261,15 +306,17 @@ def _rows(u: object) -> int:
 
 
 def bhattacharyya(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, *, rng: np.random.Generator,
-                  eps: float = 1e-6, samples: int = 4096) -> tuple[np.ndarray, np.ndarray, str]:
-    """BD of N pairs (families given per pair, rows aligned or shared), its per-pair BC error bound, and the method."""
+                  eps: float = 1e-6, samples: int = 4096, paths: dict[str, int] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, str]:
+    """BD of N pairs (families given per pair, rows aligned or shared), its per-pair BC error bound, and the method;
+    ``paths`` (if given) counts the Gaussian–box pairs per integration path."""
     n = len(mu1)
     if isinstance(u1, GaussianUncertainty) and isinstance(u2, GaussianUncertainty):
         return bd_gauss_gauss(mu1, u1.covariance(n), mu2, u2.covariance(n)), np.zeros(n), "closed form"
     if isinstance(u1, BoxUncertainty) and isinstance(u2, GaussianUncertainty):
         mu1, u1, mu2, u2 = mu2, u2, mu1, u1
     if isinstance(u1, GaussianUncertainty) and isinstance(u2, BoxUncertainty):
-        bc, err = bc_gauss_box(mu1, u1.covariance(n), mu2, u2, eps=eps)
+        bc, err = bc_gauss_box(mu1, u1.covariance(n), mu2, u2, eps=eps, paths=paths)
         return _bd(bc), err, "gaussian box probability"
     if isinstance(u1, BoxUncertainty) and isinstance(u2, BoxUncertainty):
         bc, err = bc_box_box(mu1, u1, mu2, u2)

@@ -57,8 +57,8 @@ def gdt_run(folder: Path) -> dict:
     wall, rss, _ = run_child([*GDT, "run", "workflow.yaml", "--overwrite", "--quiet", "--log-file", str(log)], folder)
     stages: dict[str, float] = {}
     for line in log.read_text().splitlines():
-        event = json.loads(line).get("event") or {}
-        if "stage" in event and "seconds" in event and event.get("epoch") == "E1":
+        event = json.loads(line)
+        if event.get("message") == "stage done" and event.get("epoch") == "E1":
             stages[event["stage"]] = stages.get(event["stage"], 0.0) + event["seconds"]
     return {"wall": wall, "rss_mb": rss, "stages": stages, "bd": bhattacharyya_report(folder / "twin")}
 

@@ -1,8 +1,9 @@
 """Building blocks for distance stages (paper Sec. 4.2.1), public so that a plugin's measure reuses what the built-in
 ones use:
 
-- ``pair_groups``: the candidate pairs of one recent dataset, grouped so that each group has one reference
-  uncertainty model (``PairGroup``: means and uncertainties of both sides);
+- ``pair_sources`` and ``pair_groups``: the candidate pairs of one recent dataset, grouped so that each group has one
+  reference uncertainty model, as index-only sources (``PairSource``) or materialised (``PairGroup``: means and
+  uncertainties of both sides);
 - ``lowest_per_element``: per element, the lowest candidate score ("the candidate with the lower change score wins");
 - ``null_simulator``: scores of unchanged pairs drawn from the actual uncertainty models (``Scores.simulate``, what
   the ``calibrated_threshold`` stage needs);
@@ -76,30 +77,67 @@ def _expand(u: Any, n: int) -> Any:
     return u if uncertainty_rows(u) == n else u.take(np.zeros(n, dtype=np.int64))
 
 
-def pair_groups(ds: Dataset, corr: Correspondences, reference: Composite) -> list[PairGroup]:
-    """The candidate pairs of one recent dataset, grouped so that each group has one reference uncertainty model."""
+@dataclass(frozen=True)
+class PairSource:
+    """Where the pairs of one group come from, without copying them: the candidate indices ``idx`` and the arrays
+    they index (the correspondences', the datasets'). ``subset`` makes a ``PairGroup`` of some of them on demand, so
+    that the null simulator of a distance stage keeps 8 bytes per pair alive rather than a copy of every mean and
+    covariance."""
+
+    idx: np.ndarray
+    element: np.ndarray
+    query_position: np.ndarray
+    u_q: Any
+    position: np.ndarray
+    u_r: Any
+    ref_rows: np.ndarray
+    ref_item: np.ndarray
+    ref_element: np.ndarray
+    query_per_candidate: bool  # query_position holds one row per candidate (else one per query element)
+
+    def subset(self, sel: np.ndarray, mu_q: np.ndarray | None = None, mu_r: np.ndarray | None = None) -> PairGroup:
+        """The pairs ``sel`` (positions in ``idx``) as a ``PairGroup``, optionally with other means."""
+        cand = self.idx[sel]
+        elem = self.element[cand]
+        if mu_q is None:
+            mu_q = self.query_position[cand if self.query_per_candidate else elem]
+        return PairGroup(cand, elem, mu_q, take_rows(self.u_q, elem),
+                         self.position[cand] if mu_r is None else mu_r, take_rows(self.u_r, self.ref_rows[cand]),
+                         self.ref_item[cand], self.ref_element[cand])
+
+    def whole(self) -> PairGroup:
+        """Every pair of the group."""
+        return self.subset(np.arange(len(self.idx)))
+
+
+def pair_sources(ds: Dataset, corr: Correspondences, reference: Composite) -> list[PairSource]:
+    """The candidate pairs of one recent dataset as ``PairSource``s, one per reference uncertainty model."""
     if ds.uncertainty is None:
         raise ValueError(f"recent dataset {ds.name!r} has no uncertainty: add an uncertainty stage before this one")
     found = np.flatnonzero(corr.found)
-    elem = corr.element
-    qpos = corr.query_position if corr.query_position is not None else ds.element_positions()[elem]
-    groups = []
+    # per candidate when the correspondences carry query positions, else per element
+    per_candidate = corr.query_position is not None
+    qpos = corr.query_position if per_candidate else ds.element_positions()
+    sources = []
     if corr.ref_uncertainty is not None:  # per-candidate reference models (mixtures of neighbours)
         over = found[corr.ref_row[found] >= 0]
         if over.size:
-            groups.append(PairGroup(over, elem[over], qpos[over], take_rows(ds.uncertainty, elem[over]),
-                                    corr.position[over], take_rows(corr.ref_uncertainty, corr.ref_row[over]),
-                                    corr.ref_item[over], corr.ref_element[over]))
+            sources.append(PairSource(over, corr.element, qpos, ds.uncertainty, corr.position, corr.ref_uncertainty,
+                                      corr.ref_row, corr.ref_item, corr.ref_element, per_candidate))
         found = found[corr.ref_row[found] < 0]
     for item in np.unique(corr.ref_item[found]):
         sel = found[corr.ref_item[found] == item]
         ref = reference.items[item].dataset
         if ref.uncertainty is None:
             raise ValueError(f"reference dataset {ref.name!r} has no uncertainty")
-        groups.append(PairGroup(sel, elem[sel], qpos[sel], take_rows(ds.uncertainty, elem[sel]), corr.position[sel],
-                                take_rows(ref.uncertainty, corr.ref_element[sel]), corr.ref_item[sel],
-                                corr.ref_element[sel]))
-    return groups
+        sources.append(PairSource(sel, corr.element, qpos, ds.uncertainty, corr.position, ref.uncertainty,
+                                  corr.ref_element, corr.ref_item, corr.ref_element, per_candidate))
+    return sources
+
+
+def pair_groups(ds: Dataset, corr: Correspondences, reference: Composite) -> list[PairGroup]:
+    """The candidate pairs of one recent dataset, grouped so that each group has one reference uncertainty model."""
+    return [src.whole() for src in pair_sources(ds, corr, reference)]
 
 
 def lowest_per_element(elements: np.ndarray, cand_score: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -121,7 +159,7 @@ def _sample_offsets(u: Any, n: int, rng: np.random.Generator) -> np.ndarray:
     return u.sample(n, rng, 1)[:, 0, :]
 
 
-def null_simulator(groups: list[PairGroup], measure: PairMeasure) -> NullSimulator:
+def null_simulator(groups: list[PairGroup] | list[PairSource], measure: PairMeasure) -> NullSimulator:
     """Scores of unchanged pairs: both measurements of the same true position, each off by its own model's error."""
     sizes = np.array([len(g.idx) for g in groups])
 
@@ -153,10 +191,12 @@ def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: 
     cand_score = np.full(m, np.nan)
     cand_p = None
     worst = 0.0
-    groups = pair_groups(ds, corr, ctx["reference"])
-    if prepare is not None:
-        groups = prepare(groups, corr.query)
-    for g in groups:
+    sources: list[Any] = pair_sources(ds, corr, ctx["reference"])
+    groups: list[Any] = sources
+    if prepare is not None:  # prepared groups (e.g. with local normals) are what the simulator must draw from
+        groups = sources = prepare([src.whole() for src in sources], corr.query)
+    for src in groups:
+        g = src.whole() if isinstance(src, PairSource) else src  # one group's copies at a time
         s, p, err = measure(g, ctx.rng)
         cand_score[g.idx] = s
         if p is not None:
@@ -170,7 +210,7 @@ def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: 
     if cand_p is not None:
         p_value = np.where(match >= 0, cand_p[np.maximum(match, 0)], np.nan)
     return Scores(query=corr.query, score=score, measure=name, p_value=p_value, tolerance=None,
-                  simulate=null_simulator(groups, measure), match=match), worst
+                  simulate=null_simulator(sources, measure), match=match), worst
 
 
 def run_pair_measure(ctx: StageContext, name: str, measure: PairMeasure, tolerance: float | None = None,

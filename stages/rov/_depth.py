@@ -14,7 +14,9 @@ the plurality of the window's points (in front, on the plane, behind) decides.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +25,8 @@ from scipy.spatial import cKDTree
 NONE, HIDDEN, THROUGH, PRESENT = 0, 1, 2, 3  # what the stations together say of a sample
 ROW = np.int64(1) << np.int64(32)  # key = row · 2³² + column; columns stay within ±2³¹ for pixels over 1.5 nrad
 MAX_COS_GRAZING = np.cos(np.radians(85.0))  # facets seen at over 85° of incidence are not judged from that station
-CHUNK = 100_000  # samples classified at once: bounds the (sample, window point) pairs to a few million
+CHUNK = 50_000  # samples classified at once: bounds the (sample, window point) pairs to a few million per thread
+THREADS = max(1, min(4, os.cpu_count() or 1))
 FOOTPRINT = 0.6  # pixels: a ray passing this close to a facet still tells what is at its edge
 
 
@@ -138,9 +141,14 @@ def window_votes(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.nda
     says of its place, as votes (2, M): points at it and points behind it (an empty window within a pose file's
     range is one vote behind); none where the station's points mostly stand in front of it (hidden from it)."""
     out = np.zeros((2, len(pos)), dtype=np.int64)
-    for s0 in range(0, len(pos), CHUNK):
+
+    def one(s0: int) -> None:
         part = slice(s0, s0 + CHUNK)
         out[:, part] = votes_chunk(img, pos[part], cov[part], None if tris is None else tris[part], k)
+
+    # numpy releases the GIL in its array work, so two threads keep both cores busy; each chunk writes its own slice
+    with ThreadPoolExecutor(max_workers=THREADS) as pool:
+        list(pool.map(one, range(0, len(pos), CHUNK)))
     return out
 
 

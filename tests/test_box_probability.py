@@ -10,8 +10,9 @@ from scipy.spatial.transform import Rotation
 from scipy.special import ndtr, owens_t
 
 from gdt_pipeline import BoxUncertainty
-from stages.distance.box_probability import BVN_ERROR, PATHS, box_probability, bvn_lower
+from stages.distance.box_probability import PATHS, box_probability
 from stages.distance.measures import _box_prob_genz, bc_gauss_box
+from stages.distance.normal_orthants import BVN_ERROR, bvn_lower
 
 
 def _bvn_owen(h: np.ndarray, k: np.ndarray, r: np.ndarray) -> np.ndarray:

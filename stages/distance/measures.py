@@ -26,7 +26,7 @@ from scipy.special import ndtr
 from gdt_pipeline import BoxUncertainty, GaussianUncertainty, MixtureUncertainty
 from gdt_pipeline.geometry import det3, quad_inv3, sym3
 
-from .box_probability import PATHS, box_probability
+from .box_probability import PATHS, gauss_box_bc
 
 K_SQRT = (8.0 * np.pi) ** 0.75
 _CHUNK = 20_000
@@ -107,7 +107,7 @@ def bc_gauss_box(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUn
     """Bhattacharyya coefficient of Gaussian–box pairs and its per-pair error bound (≤ ``eps`` wherever a path
     settles the pair).
 
-    Axis-aligned pairs take the closed form. The rest go through ``box_probability`` (bound screens, then exact
+    Axis-aligned pairs take the closed form. The rest go through ``gauss_box_bc`` (bound screens, then exact
     inclusion–exclusion with bounded or integrated corners); pairs it cannot settle within ``eps`` are integrated by
     Genz quadrature, the order raised per pair until two successive orders agree to ``eps`` on BC (the bound reported
     is that last difference; pairs that never agree keep the highest order's value and bound). ``paths`` (if given)
@@ -127,31 +127,19 @@ _PAIR_CHUNK = 200_000  # pairs per pass: bounds the (n, 3, 3) temporaries of the
 
 def _bc_gauss_box_chunk(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUncertainty, eps: float,
                         paths: dict[str, int] | None) -> tuple[np.ndarray, np.ndarray]:
-    n = len(mu)
-    m, c, h = _box_frame(mu, cov, box, center)
-    # √|Σ| of the original Gaussian: |2Σ| = 8|Σ|
-    scale = K_SQRT * (det3(c) / 8.0) ** 0.25 / np.sqrt(np.prod(2.0 * h, axis=1))
-    sd = np.sqrt(np.diagonal(c, axis1=1, axis2=2))
-    off = np.stack([c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]], 1)
-    sd_pairs = np.stack([sd[:, 0] * sd[:, 1], sd[:, 0] * sd[:, 2], sd[:, 1] * sd[:, 2]], 1)
-    aligned = np.all(np.abs(off) <= 1e-12 * sd_pairs, 1)
-    prob = np.empty(n)
-    err = np.zeros(n)
-    lo, hi = (-h - m) / sd, (h - m) / sd
-    if aligned.any():
-        prob[aligned] = np.prod(_phi_diff(lo[aligned], hi[aligned]), axis=1)
-    turned = np.flatnonzero(~aligned)
-    prob[turned], err[turned], path = box_probability(lo[turned], hi[turned], off[turned] / sd_pairs[turned],
-                                                      scale[turned], eps)
-    err[turned] *= scale[turned]
-    todo = turned[path == 2]
+    axes = np.eye(3)[None] if box.rotation is None else box.rotation
+    bc, err, path = gauss_box_bc(mu, cov, center, axes, box.half_widths, eps)
     if paths is not None:
-        _count(paths, "closed form", int(aligned.sum()))
         for k, name in enumerate(PATHS):
             _count(paths, name, int(np.sum(path == k)))
+    todo = np.flatnonzero(path == 2)
     if todo.size:
-        prob[todo], err[todo] = _genz_adaptive(m[todo], c[todo], h[todo], scale[todo], eps)
-    return scale * prob, err
+        sub = box.take(todo)
+        m, c, h = _box_frame(mu[todo], cov[todo], sub, center[todo])
+        scale = K_SQRT * (det3(c) / 8.0) ** 0.25 / np.sqrt(np.prod(2.0 * h, axis=1))
+        prob, err[todo] = _genz_adaptive(m, c, h, scale, eps)
+        bc[todo] = scale * prob
+    return bc, err
 
 
 def _count(paths: dict[str, int], name: str, k: int) -> None:

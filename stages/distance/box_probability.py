@@ -31,7 +31,18 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .normal_orthants import BVN_ERROR, BVN_TABLES, CORNER_NODES, bvnu, bvnu_small, corner_bound, orthant, phi
+from .normal_orthants import (
+    BVN_ERROR,
+    BVN_TABLES,
+    CORNER_NODES,
+    WORK_CALLER,
+    WORK_SIZE,
+    bvnu,
+    bvnu_small,
+    corner_bound,
+    orthant,
+    phi,
+)
 
 PATHS = ("bound screen", "inclusion–exclusion", "quadrature", "closed form")
 K_SQRT = (8.0 * np.pi) ** 0.75
@@ -44,24 +55,25 @@ def _interval(lo: float, hi: float) -> float:
 
 
 @njit(cache=True)
-def _settle(lo, hi, rho, scale: float, eps: float, tables, nodes) -> tuple[float, float, int]:
+def _settle(lo, hi, rho, scale: float, eps: float, tables, nodes, work) -> tuple[float, float, int]:
     """One pair: P(lo ≤ Z ≤ hi) for standard Z with correlations rho (r₀₁, r₀₂, r₁₂), its error bound and path."""
     ax = (0, 1, 2, 0, 1, 2)
     sg = (1.0, 1.0, 1.0, -1.0, -1.0, -1.0)
-    b = np.empty(6)
-    t = np.empty(6)
+    b = work[WORK_CALLER:WORK_CALLER + 6]
+    t = work[WORK_CALLER + 6:WORK_CALLER + 12]
+    pair = work[WORK_CALLER + 12:WORK_CALLER + 48]  # 6 × 6, row-major
+    a = work[WORK_CALLER + 48:WORK_CALLER + 51]
     p_min, p_sum = 1.0, 0.0
-    for a in range(3):
-        b[a], b[a + 3] = lo[a], -hi[a]
-        t[a], t[a + 3] = phi(lo[a]), phi(-hi[a])
-        p_ax = _interval(lo[a], hi[a])
+    for axis in range(3):
+        b[axis], b[axis + 3] = lo[axis], -hi[axis]
+        t[axis], t[axis + 3] = phi(lo[axis]), phi(-hi[axis])
+        p_ax = _interval(lo[axis], hi[axis])
         p_min = min(p_min, p_ax)
         p_sum += p_ax
     low, up = max(0.0, p_sum - 2.0), p_min
     if scale * (up - low) <= 2.0 * eps:
         return 0.5 * (low + up), 0.5 * (up - low), 0
     s1 = t[0] + t[1] + t[2] + t[3] + t[4] + t[5]
-    pair = np.zeros((6, 6))
     s2 = 0.0
     for f in range(6):
         for g in range(f + 1, 6):
@@ -72,14 +84,13 @@ def _settle(lo, hi, rho, scale: float, eps: float, tables, nodes) -> tuple[float
                 v = max(bvnu_small(-b[f], -b[g], r, tables, t[f] * t[g]), 0.0)
             else:
                 v = max(bvnu(-b[f], -b[g], r, tables), 0.0)
-            pair[f, g] = pair[g, f] = v
+            pair[6 * f + g] = pair[6 * g + f] = v
             s2 += v
     s3_lo, s3_hi = 0.0, 0.0
-    a = np.empty(3)
     for f in (0, 3):
         for g in (1, 4):
             for h in (2, 5):
-                bound = min(pair[f, g], pair[f, h], pair[g, h])
+                bound = min(pair[6 * f + g], pair[6 * f + h], pair[6 * g + h])
                 a[0], a[1], a[2] = -b[f], -b[g], -b[h]
                 c01, c02, c12 = sg[f] * sg[g] * rho[0], sg[f] * sg[h] * rho[1], sg[g] * sg[h] * rho[2]
                 if a[0] > 0.0 and a[1] > 0.0 and a[2] > 0.0:
@@ -87,7 +98,7 @@ def _settle(lo, hi, rho, scale: float, eps: float, tables, nodes) -> tuple[float
                 if scale * bound <= eps / 8.0:
                     s3_hi += bound
                     continue
-                value, gap = orthant(a, c01, c02, c12, tables, nodes, eps / (8.0 * scale))
+                value, gap = orthant(a, c01, c02, c12, tables, nodes, eps / (8.0 * scale), work)
                 s3_lo += max(value - gap, 0.0)
                 s3_hi += min(value + gap, bound)
     top = min(1.0 - s1 + s2 - s3_lo, up)
@@ -97,35 +108,60 @@ def _settle(lo, hi, rho, scale: float, eps: float, tables, nodes) -> tuple[float
     return 0.5 * (top + bottom), err, 1 if scale * err <= eps else 2
 
 
+_BLOCK = 256  # pairs per work array
+
+
 @njit(parallel=True, cache=True)
 def _standard_kernel(lo, hi, rho, scale, eps, prob, err, path, tables, nodes):
-    for i in prange(lo.shape[0]):
-        prob[i], err[i], path[i] = _settle(lo[i], hi[i], rho[i], scale[i], eps, tables, nodes)
+    n = lo.shape[0]
+    for blk in prange((n + _BLOCK - 1) // _BLOCK):
+        work = np.empty(WORK_SIZE)
+        for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            prob[i], err[i], path[i] = _settle(lo[i], hi[i], rho[i], scale[i], eps, tables, nodes, work)
+
+
+@njit(cache=True)
+def _one_gauss_box(mu, cov, center, R, h, eps, tables, nodes, work) -> tuple[float, float, int]:
+    """One pair: X ~ N(μ, 2Σ) in the box's frame (R's columns), standardised, then ``_settle``; BC = scale · P."""
+    std = work[WORK_CALLER + 51:WORK_CALLER + 60]  # lo, hi, rho
+    m = work[WORK_CALLER + 60:WORK_CALLER + 63]
+    c = work[WORK_CALLER + 63:WORK_CALLER + 72].reshape((3, 3))
+    for k in range(3):
+        m[k] = 0.0
+        for j in range(3):
+            m[k] += R[j, k] * (mu[j] - center[j])
+    for k in range(3):
+        for col in range(k, 3):
+            v = 0.0
+            for p in range(3):
+                for q in range(3):
+                    v += R[p, k] * cov[p, q] * R[q, col]
+            c[k, col] = c[col, k] = 2.0 * v
+    det = (c[0, 0] * (c[1, 1] * c[2, 2] - c[1, 2] * c[2, 1]) - c[0, 1] * (c[1, 0] * c[2, 2] - c[1, 2] * c[2, 0])
+           + c[0, 2] * (c[1, 0] * c[2, 1] - c[1, 1] * c[2, 0]))
+    # √|Σ| of the original Gaussian: |2Σ| = 8|Σ|
+    scale = K_SQRT * (max(det, 0.0) / 8.0) ** 0.25 / np.sqrt(8.0 * h[0] * h[1] * h[2])
+    for k in range(3):
+        sd = np.sqrt(c[k, k])
+        std[k], std[3 + k] = (-h[k] - m[k]) / sd, (h[k] - m[k]) / sd
+    std[6] = c[0, 1] / np.sqrt(c[0, 0] * c[1, 1])
+    std[7] = c[0, 2] / np.sqrt(c[0, 0] * c[2, 2])
+    std[8] = c[1, 2] / np.sqrt(c[1, 1] * c[2, 2])
+    if abs(std[6]) <= 1e-12 and abs(std[7]) <= 1e-12 and abs(std[8]) <= 1e-12:
+        return scale * _interval(std[0], std[3]) * _interval(std[1], std[4]) * _interval(std[2], std[5]), 0.0, 3
+    p, e, path = _settle(std[0:3], std[3:6], std[6:9], scale, eps, tables, nodes, work)
+    return scale * p, scale * e, path
 
 
 @njit(parallel=True, cache=True)
 def _gauss_box_kernel(mu, cov, center, axes, half, eps, bc, err, path, tables, nodes):
-    """Per pair: X ~ N(μ, 2Σ) in the box's frame (axes' columns), standardised, then ``_settle``; BC = scale · P."""
+    n = mu.shape[0]
     shared_axes, shared_half = axes.shape[0] == 1, half.shape[0] == 1
-    for i in prange(mu.shape[0]):
-        R = axes[0] if shared_axes else axes[i]
-        h = half[0] if shared_half else half[i]
-        d = mu[i] - center[i]
-        m = R.T @ d
-        c = 2.0 * (R.T @ cov[i] @ R)
-        det = (c[0, 0] * (c[1, 1] * c[2, 2] - c[1, 2] * c[2, 1]) - c[0, 1] * (c[1, 0] * c[2, 2] - c[1, 2] * c[2, 0])
-               + c[0, 2] * (c[1, 0] * c[2, 1] - c[1, 1] * c[2, 0]))
-        # √|Σ| of the original Gaussian: |2Σ| = 8|Σ|
-        scale = K_SQRT * (max(det, 0.0) / 8.0) ** 0.25 / np.sqrt(8.0 * h[0] * h[1] * h[2])
-        sd = np.sqrt(np.array([c[0, 0], c[1, 1], c[2, 2]]))
-        lo, hi = (-h - m) / sd, (h - m) / sd
-        rho = np.array([c[0, 1] / (sd[0] * sd[1]), c[0, 2] / (sd[0] * sd[2]), c[1, 2] / (sd[1] * sd[2])])
-        if abs(rho[0]) <= 1e-12 and abs(rho[1]) <= 1e-12 and abs(rho[2]) <= 1e-12:
-            bc[i] = scale * _interval(lo[0], hi[0]) * _interval(lo[1], hi[1]) * _interval(lo[2], hi[2])
-            err[i], path[i] = 0.0, 3
-            continue
-        p, e, path[i] = _settle(lo, hi, rho, scale, eps, tables, nodes)
-        bc[i], err[i] = scale * p, scale * e
+    for blk in prange((n + _BLOCK - 1) // _BLOCK):
+        work = np.empty(WORK_SIZE)
+        for i in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            bc[i], err[i], path[i] = _one_gauss_box(mu[i], cov[i], center[i], axes[0] if shared_axes else axes[i],
+                                                    half[0] if shared_half else half[i], eps, tables, nodes, work)
 
 
 def box_probability(lo: np.ndarray, hi: np.ndarray, rho: np.ndarray, scale: np.ndarray, eps: float

@@ -52,6 +52,9 @@ def _corner_nodes() -> np.ndarray:
     return out
 
 
+# Scratch slots of the per-thread work array the kernels pass down (numba heap allocations per pair cost more than
+# the arithmetic): a corner's sines, then an orthant's thresholds and signs; the callers' own slots follow.
+WORK_SINES, WORK_ORTHANT, WORK_CALLER, WORK_SIZE = 0, 20, 32, 112
 CORNER_ORDERS = (6, 9, 13)  # tried in turn per corner; each difference is the error of the lower order
 BVN_TABLES = _tables()
 CORNER_NODES = _corner_nodes()
@@ -175,7 +178,7 @@ def _bvn_many(h, k, r, out, tables):
 
 
 @njit(cache=True)
-def _corner(a, r01: float, r02: float, r12: float, tables, nodes, row: int) -> float:
+def _corner(a, r01: float, r02: float, r12: float, tables, nodes, row: int, work) -> float:
     """P(Y₀ ≥ a₀, Y₁ ≥ a₁, Y₂ ≥ a₂) by Gauss–Legendre over the variable with the largest aᵢ (its density decays
     fastest), the other two in closed form (conditional BVNU); ``row`` picks the order."""
     k = 0
@@ -191,7 +194,7 @@ def _corner(a, r01: float, r02: float, r12: float, tables, nodes, row: int) -> f
     a0 = a[k]
     span = -a0 + math.sqrt(a0 * a0 + _TAIL_SPAN)
     order = CORNER_ORDERS[row]
-    sn = np.empty(20)
+    sn = work[WORK_SINES:WORK_SINES + 20]
     if abs(rp) < 0.925:
         _sines(rp, tables, sn)
     total = 0.0
@@ -226,18 +229,18 @@ def corner_bound(a0: float, a1: float, a2: float, r01: float, r02: float, r12: f
 
 
 @njit(cache=True)
-def _tail_corner(a, r01: float, r02: float, r12: float, tables, nodes, budget: float) -> tuple[float, float]:
+def _tail_corner(a, r01: float, r02: float, r12: float, tables, nodes, budget: float, work) -> tuple[float, float]:
     """P(Y ≥ a) for all aᵢ ≥ 0 (a true tail corner) and its error: successive orders of ``_corner`` until their
     difference is within ``budget``, or the last ones'."""
-    coarse = _corner(a, r01, r02, r12, tables, nodes, 0)
-    fine = _corner(a, r01, r02, r12, tables, nodes, 1)
+    coarse = _corner(a, r01, r02, r12, tables, nodes, 0, work)
+    fine = _corner(a, r01, r02, r12, tables, nodes, 1, work)
     if abs(fine - coarse) > budget:
-        coarse, fine = fine, _corner(a, r01, r02, r12, tables, nodes, 2)
+        coarse, fine = fine, _corner(a, r01, r02, r12, tables, nodes, 2, work)
     return fine, abs(fine - coarse)
 
 
 @njit(cache=True)
-def orthant(a, r01: float, r02: float, r12: float, tables, nodes, budget: float) -> tuple[float, float]:
+def orthant(a, r01: float, r02: float, r12: float, tables, nodes, budget: float, work) -> tuple[float, float]:
     """P(Y₀ ≥ a₀, Y₁ ≥ a₁, Y₂ ≥ a₂) and its error, for any signs of a.
 
     Where the mean lies beyond a face (aⱼ < 0) the corner is no tail: its integrand does not decay from the start
@@ -249,31 +252,37 @@ def orthant(a, r01: float, r02: float, r12: float, tables, nodes, budget: float)
         if a[j] < 0.0:
             neg |= 1 << j
     total, error = 0.0, 0.0
-    t = np.empty(3)
-    sg = np.empty(3)
-    dims = np.empty(3, dtype=np.int64)
+    t = work[WORK_ORTHANT:WORK_ORTHANT + 3]
+    sg = work[WORK_ORTHANT + 3:WORK_ORTHANT + 6]
     for flip in range(8):
         if flip & ~neg:
             continue
-        n, sign = 0, 1.0
+        n, sign, d0, d1 = 0, 1.0, 0, 0
         for j in range(3):
+            keep = True
             if not (neg >> j) & 1:
-                dims[n], t[n], sg[n] = j, a[j], 1.0
-                n += 1
+                t[n], sg[n] = a[j], 1.0
             elif (flip >> j) & 1:
-                dims[n], t[n], sg[n] = j, -a[j], -1.0
-                n += 1
+                t[n], sg[n] = -a[j], -1.0
                 sign = -sign
+            else:
+                keep = False
+            if keep:
+                if n == 0:
+                    d0 = j
+                elif n == 1:
+                    d1 = j
+                n += 1
         if n == 0:
             value, err = 1.0, 0.0
         elif n == 1:
             value, err = phi(-t[0]), 0.0
         elif n == 2:
-            value = bvnu(t[0], t[1], sg[0] * sg[1] * r[dims[0]][dims[1]], tables)
+            value = bvnu(t[0], t[1], sg[0] * sg[1] * r[d0][d1], tables)
             err = BVN_ERROR
         else:
             value, err = _tail_corner(t, sg[0] * sg[1] * r01, sg[0] * sg[2] * r02, sg[1] * sg[2] * r12, tables,
-                                      nodes, budget)
+                                      nodes, budget, work)
         total += sign * value
         error += err
     return total, error

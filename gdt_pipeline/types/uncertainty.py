@@ -103,7 +103,14 @@ class GaussianUncertainty:
 
     def take(self, idx: np.ndarray) -> GaussianUncertainty:
         """The uncertainty of the elements ``idx`` (a shared covariance stays shared)."""
-        return self if self.cov.shape[0] == 1 else GaussianUncertainty(self.cov[idx])
+        if self.cov.shape[0] == 1:
+            return self
+        # rows of validated covariances need no second check (the symmetry test costs as much as the copy)
+        out = object.__new__(GaussianUncertainty)
+        cov = self.cov[idx]
+        cov.setflags(write=False)
+        object.__setattr__(out, "cov", cov)
+        return out
 
     def sample(self, n: int, rng: np.random.Generator, k: int = 1) -> np.ndarray:
         """``k`` random offsets per element, ``(n,k,3)``."""

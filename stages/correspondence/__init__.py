@@ -12,6 +12,7 @@ makes them new, never drops them.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -99,6 +100,8 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
         if ref_mesh is not None and not ref_mesh.empty:
             parts.append(point_to_mesh(qpos, qcov, ref_mesh, p.search_sigmas, extra_var, element))
         corr = to_correspondences(qi, ds.n_elements, parts, name)
+        if ds.faces is None:  # the queries are the points themselves: no copy of them per candidate (24 B each)
+            corr = dataclasses.replace(corr, query_position=None)
         matched = int(corr.element_found().sum())
         ctx.log.info("%s: %d of %d elements have candidates (%d candidates from %d query points)", ds.name, matched,
                      ds.n_elements, len(corr.ref_item), len(qpos))

@@ -19,6 +19,7 @@ test: setup
 	$(BIN)/python -m pytest -q -p no:cacheprovider
 
 bench: setup
+	$(BIN)/python bench/speed.py
 	$(BIN)/python bench/engine_throughput.py
 	$(BIN)/python bench/voxel_mle.py
 	$(BIN)/python bench/distances.py

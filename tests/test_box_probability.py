@@ -11,7 +11,7 @@ from scipy.special import ndtr, owens_t
 
 from gdt_pipeline import BoxUncertainty
 from stages.distance.box_probability import PATHS, box_probability
-from stages.distance.measures import _box_prob_genz, bc_gauss_box
+from stages.distance.measures import bc_gauss_box, box_prob_genz
 from stages.distance.normal_orthants import BVN_ERROR, bvn_lower
 
 
@@ -55,7 +55,7 @@ def test_box_probability_within_its_bound(spread: float, settled_share: float) -
     lo, hi, rho = _standardised(m, c, h)
     eps = 1e-6
     prob, err, path = box_probability(lo, hi, rho, np.ones(len(m)), eps)
-    truth = _box_prob_genz(m, c, h, 56)
+    truth = box_prob_genz(m, c, h, 56)
     settled = path < 2
     assert settled.mean() > settled_share
     # the reported bound holds and is within ε where settled; the reference cuts each outer variable at ±6σ (1e-9 per
@@ -93,6 +93,6 @@ def test_gauss_box_counts_paths_and_stays_exact() -> None:
     assert np.all(err <= 1e-6)
     # against quadrature in the same frame (X ~ N(μ, 2Σ), BC = scale · P)
     cov2 = 2 * c * half**2
-    truth_p = _box_prob_genz(m * half, cov2, np.full((n, 3), half), 56)
+    truth_p = box_prob_genz(m * half, cov2, np.full((n, 3), half), 56)
     scale = (8 * np.pi) ** 0.75 * (np.linalg.det(cov2) / 8) ** 0.25 / (2 * half) ** 1.5
     assert np.max(np.abs(bc - scale * truth_p)) <= 1e-6 + 1e-9

@@ -59,7 +59,7 @@ def _gauss_legendre(order: int) -> tuple[np.ndarray, np.ndarray]:
     return 0.5 * (t + 1.0), 0.5 * w
 
 
-def _box_prob_genz(m: np.ndarray, c: np.ndarray, h: np.ndarray, order: int) -> np.ndarray:
+def box_prob_genz(m: np.ndarray, c: np.ndarray, h: np.ndarray, order: int) -> np.ndarray:
     """P(−h ≤ X ≤ h), X ~ N(m, C), by sequential conditioning (Genz) with Gauss–Legendre in the outer two levels.
 
     The outer levels integrate over the standardised variable z (density φ(z), interval cut at ±6 where each tail
@@ -152,12 +152,12 @@ def _genz_adaptive(m: np.ndarray, c: np.ndarray, h: np.ndarray, scale: np.ndarra
     """Box probabilities by Genz quadrature, the order raised per pair until two orders agree to ``eps`` on BC."""
     prob, err = np.empty(len(m)), np.zeros(len(m))
     todo = np.arange(len(m))
-    prev = _box_prob_genz(m, c, h, ORDERS[0])
+    prev = box_prob_genz(m, c, h, ORDERS[0])
     prob[:] = prev
     for order in ORDERS[1:]:
         if not todo.size:
             break
-        cur = _box_prob_genz(m[todo], c[todo], h[todo], order)
+        cur = box_prob_genz(m[todo], c[todo], h[todo], order)
         diff = np.abs(cur - prev) * scale[todo]
         prob[todo], err[todo] = cur, diff
         keep = diff > eps

@@ -181,10 +181,12 @@ def votes_chunk(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndar
             var_p = along6(img.cov6[point], unit)
             tol = k * np.sqrt(var_p + var_e[sample])
             side = np.where(offset > tol, 0, np.where(offset < -tol, 2, 1))  # in front, at, behind
-            np.add.at(counts, (side, sample), 1)
+            # bincount, not np.add.at: several times faster (per window offset the sums are formed first, then added)
+            m = len(pos)
+            counts += np.bincount(side * m + sample, minlength=3 * m).reshape(3, m)
             back = side > 0
-            np.add.at(pooled, (0, sample[back]), offset[back])
-            np.add.at(pooled, (1, sample[back]), var_p[back])
+            pooled[0] += np.bincount(sample[back], weights=offset[back], minlength=m)
+            pooled[1] += np.bincount(sample[back], weights=var_p[back], minlength=m)
     front, at, behind = counts
     # each point within k σ of the plane, their mean clearly behind it: a surface a noisy scanner measured a few
     # σ behind a removed part's place (the floor under a pipe, 5 cm below at σ 3 cm) is not the part

@@ -76,7 +76,8 @@ class ReferenceIndex:
         pos = np.full((n, 3), np.nan)
         dist = np.full(n, np.inf)
         if self._tree is not None and n:
-            d, j = self._tree.query(q, k=1, distance_upper_bound=np.inf if max_distance is None else max_distance)
+            d, j = self._tree.query(q, k=1, distance_upper_bound=np.inf if max_distance is None else max_distance,
+                                          workers=-1)
             ok = np.isfinite(d)
             item[ok], elem[ok], dist[ok] = self._pt_item[j[ok]], self._pt_elem[j[ok]], d[ok]
             pos[ok] = self._pt_pos[j[ok]]

@@ -63,7 +63,7 @@ def sampling_covariance(pos: np.ndarray, cov: np.ndarray, neighbours: int = 12) 
     out = np.zeros((len(pos), 3, 3))
     sparse = np.zeros(len(pos), dtype=bool)
     for s0 in range(0, len(pos), 200_000):  # chunks bound the (n, k, 3) neighbourhoods
-        d, j = tree.query(pos[s0:s0 + 200_000], k=k)
+        d, j = tree.query(pos[s0:s0 + 200_000], k=k, workers=-1)
         half = 0.5 * np.median(d[:, 1:4], axis=1)
         sp = np.linalg.eigvalsh(cov[s0:s0 + 200_000])[:, -1] < half**2
         nb = pos[j[sp]] - pos[j[sp]].mean(axis=1, keepdims=True)
@@ -127,7 +127,8 @@ class ReferencePoints:
         for members, tree, var in self.tiers:
             k = min(pool, len(members))
             radius = np.sqrt(chi2 * (lam_q + var))
-            dist, idx = tree.query(qpos - self.origin, k=k, distance_upper_bound=float(radius.max()))
+            dist, idx = tree.query(qpos - self.origin, k=k, distance_upper_bound=float(radius.max()),
+                                   workers=-1)
             dist, idx = dist.reshape(len(qpos), k), idx.reshape(len(qpos), k)
             ok = dist <= radius[:, None]
             fq.append(np.nonzero(ok)[0])

@@ -69,10 +69,10 @@ def _known_in_view(items: list[CompositeItem], rov: RegionOfView, keep_design: b
     sel_known = ~all_design if keep_design else np.ones(len(all_pos), bool)
     pos_a, owner_a, elem_a = all_pos[sel_known], np.concatenate(owner)[sel_known], np.concatenate(elem)[sel_known]
     design_tree = cKDTree(all_pos[all_design]) if keep_design and all_design.any() else None
-    design_gap = (float(np.median(design_tree.query(design_tree.data, k=2)[0][:, 1]))
+    design_gap = (float(np.median(design_tree.query(design_tree.data, k=2, workers=-1)[0][:, 1]))
                   if design_tree is not None and design_tree.n > 1 else 0.0)
     tree = cKDTree(pos_a) if len(pos_a) else None
-    ref_gap = float(np.median(tree.query(pos_a, k=2)[0][:, 1])) if len(pos_a) > 1 else 0.0
+    ref_gap = float(np.median(tree.query(pos_a, k=2, workers=-1)[0][:, 1])) if len(pos_a) > 1 else 0.0
     own = np.zeros(len(pos_a))
     vol_known = np.full(len(pos_a), np.inf)
     for i in np.unique(owner_a):
@@ -96,11 +96,11 @@ def _choose(qi: int, ds: Dataset, ch: Change, known: KnownInView, policy: str, r
     v_new, sigma = spread(ds, cand)
     spacing = 3.0 * sigma
     if known.design_tree is not None:
-        d_design, _ = known.design_tree.query(rpos)
+        d_design, _ = known.design_tree.query(rpos, workers=-1)
         reason[cand[d_design <= np.maximum(spacing, 2.0 * known.design_gap)]] = FusionReason.DESIGN_STAYS
     if known.tree is None:
         return
-    d, j = known.tree.query(rpos)
+    d, j = known.tree.query(rpos, workers=-1)
     # an unchanged recent element images its nearest in-view known element when it lies within 3σ of either's
     # largest axis or twice the known data's spacing (a sparse noisy reference is farther away than the precise σ)
     near = d <= np.maximum(np.maximum(spacing, known.own[j]), 2.0 * known.gap)
@@ -122,7 +122,7 @@ def _choose(qi: int, ds: Dataset, ch: Change, known: KnownInView, policy: str, r
 def _replace_known(known: KnownInView, taking: Taking, out: Decision) -> None:
     """Mark every known element the taking data images as replaced, not only the nearest of each: a known element
     within 3σ of its own largest axis (or twice the typical gap) of taking data."""
-    dist, k = cKDTree(np.vstack(taking.pos)).query(known.pos)
+    dist, k = cKDTree(np.vstack(taking.pos)).query(known.pos, workers=-1)
     hit = dist <= np.maximum(known.own, 2.0 * known.gap)
     with np.errstate(invalid="ignore", divide="ignore"):
         r_known = np.concatenate(taking.vol)[k] / known.vol

@@ -81,7 +81,7 @@ def segment_labels(pos_a: np.ndarray, sig_a: np.ndarray, params: SegmentParams) 
     tree = cKDTree(pos_a)
     radius = params.segment_radius
     if radius is None:
-        gap = tree.query(pos_a, k=2)[0][:, 1] if len(pos_a) > 1 else np.zeros(1)
+        gap = tree.query(pos_a, k=2, workers=-1)[0][:, 1] if len(pos_a) > 1 else np.zeros(1)
         # a noisy scan's σ (30 cm for a ToF at 4.5 m) would join the whole scene: the σ term stops at 5 % of the
         # elements' extent, where the radius guard below would refuse a default it set itself
         extent = float(np.linalg.norm(np.ptp(pos_a, axis=0)))

@@ -45,7 +45,7 @@ def stable_areas(ctx: StageContext) -> dict[str, Any]:
         if round_ == p.trim_rounds:
             break
         moved = (src - origin) @ t_local[:3, :3].T + t_local[:3, 3]
-        d, _ = tree.query(moved)
+        d, _ = tree.query(moved, workers=-1)
         med = np.median(d)
         robust = 1.4826 * np.median(np.abs(d - med))
         keep = d <= med + p.trim_k * max(robust, 1e-12)

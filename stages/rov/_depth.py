@@ -93,7 +93,7 @@ def angular_spacing(az: np.ndarray, el: np.ndarray) -> float:
     """The median angular distance from a point to its nearest neighbour (on at most about 20000 of them)."""
     xy = np.column_stack([az * np.cos(el), el])
     sample = xy[:: max(1, len(xy) // 20000)]
-    d, _ = cKDTree(xy).query(sample, k=2)
+    d, _ = cKDTree(xy).query(sample, k=2, workers=-1)
     return float(np.median(d[:, 1]))
 
 

@@ -21,7 +21,7 @@ def point_spacing(points: np.ndarray) -> float:
     if len(points) < 2:
         return 0.0
     sample = points[:: max(1, len(points) // 20000)]
-    d, _ = cKDTree(points).query(sample, k=2)
+    d, _ = cKDTree(points).query(sample, k=2, workers=-1)
     return float(np.median(d[:, 1]))
 
 
@@ -97,7 +97,7 @@ def _matched(item: CompositeItem, pos: np.ndarray, inside: np.ndarray, normal: n
     if item.dataset.uncertainty is not None:
         own = 3.0 * np.sqrt(np.linalg.eigvalsh(item.dataset.element_covariance()[inside])[:, -1])
     reach = float(max(radius.max(), own.max(initial=0.0)))
-    d, j = tree.query(pos[inside], k=32, distance_upper_bound=reach)
+    d, j = tree.query(pos[inside], k=32, distance_upper_bound=reach, workers=-1)
     ok = np.isfinite(d)
     jj = np.where(ok, j, 0)
     hit = ok & (d <= np.maximum(radius[jj], own[:, None]))

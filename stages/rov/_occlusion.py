@@ -117,7 +117,7 @@ def shadowed(origins: np.ndarray, targets: np.ndarray, tree: cKDTree, radius: fl
     for s0 in range(0, len(ray), chunk):
         r, tt = ray[s0:s0 + chunk], t[s0:s0 + chunk]
         pts = origins[r] + tt[:, None] * (targets[r] - origins[r])
-        d, _ = tree.query(pts, distance_upper_bound=radius)
+        d, _ = tree.query(pts, distance_upper_bound=radius, workers=-1)
         np.logical_or.at(out, r[np.isfinite(d)], True)
     return out
 

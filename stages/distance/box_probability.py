@@ -29,7 +29,8 @@ one pass, on every core.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+
+from gdt_pipeline.compiled import njit, prange
 
 from .normal_orthants import (
     BVN_ERROR,

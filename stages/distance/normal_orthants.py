@@ -10,11 +10,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import config, njit, prange
 
-# numba tries TBB first and warns when the installed one is too old; OpenMP (libgomp, which Open3D loads anyway) is
-# what it falls back to, so ask for it directly
-config.THREADING_LAYER = "omp"
+from gdt_pipeline.compiled import njit, prange
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 

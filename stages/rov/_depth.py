@@ -14,19 +14,18 @@ the plurality of the window's points (in front, on the plane, behind) decides.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .window_kernel import window_sides
+
 NONE, HIDDEN, THROUGH, PRESENT = 0, 1, 2, 3  # what the stations together say of a sample
 ROW = np.int64(1) << np.int64(32)  # key = row · 2³² + column; columns stay within ±2³¹ for pixels over 1.5 nrad
 MAX_COS_GRAZING = np.cos(np.radians(85.0))  # facets seen at over 85° of incidence are not judged from that station
-CHUNK = 50_000  # samples classified at once: bounds the (sample, window point) pairs to a few million per thread
-THREADS = max(1, min(4, os.cpu_count() or 1))
+CHUNK = 200_000  # samples classified at once: bounds the chunk's temporaries
 FOOTPRINT = 0.6  # pixels: a ray passing this close to a facet still tells what is at its edge
 
 
@@ -141,14 +140,9 @@ def window_votes(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.nda
     says of its place, as votes (2, M): points at it and points behind it (an empty window within a pose file's
     range is one vote behind); none where the station's points mostly stand in front of it (hidden from it)."""
     out = np.zeros((2, len(pos)), dtype=np.int64)
-
-    def one(s0: int) -> None:
+    for s0 in range(0, len(pos), CHUNK):
         part = slice(s0, s0 + CHUNK)
         out[:, part] = votes_chunk(img, pos[part], cov[part], None if tris is None else tris[part], k)
-
-    # numpy releases the GIL in its array work, so two threads keep both cores busy; each chunk writes its own slice
-    with ThreadPoolExecutor(max_workers=THREADS) as pool:
-        list(pool.map(one, range(0, len(pos), CHUNK)))
     return out
 
 
@@ -162,31 +156,13 @@ def votes_chunk(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndar
     var_e = np.einsum("ij,ijk,ik->i", normals, cov, normals)
     counts = np.zeros((3, len(pos)), dtype=np.int64)  # front, at, behind
     pooled = np.zeros((2, len(pos)))  # over the points not in front: sum of offsets, sum of their variances
-    for drow in (-1, 0, 1):
-        for dcol in (-1, 0, 1):
-            key = pixel_cells(az, el, img.pixel, drow, dcol)[0]
-            rank = np.minimum(np.searchsorted(img.keys, key), len(img.keys) - 1)
-            hit = np.flatnonzero((img.keys[rank] == key) & judged)
-            n = img.counts[rank[hit]]
-            sample = np.repeat(hit, n)
-            point = np.repeat(img.starts[rank[hit]] - np.cumsum(n) + n, n) + np.arange(n.sum())
-            if tris is not None:
-                # only rays through the facet say what is at its place: a neighbour's surface beside a thin face,
-                # or one crossing a removed face's plane, is not the face
-                keep = through_facet(img.eye, img.points[point], tris[sample], normals[sample],
-                                     FOOTPRINT * img.pixel * depth[sample])
-                sample, point = sample[keep], point[keep]
-            unit = normals[sample]
-            offset = np.einsum("ij,ij->i", unit, img.points[point] - pos[sample])
-            var_p = along6(img.cov6[point], unit)
-            tol = k * np.sqrt(var_p + var_e[sample])
-            side = np.where(offset > tol, 0, np.where(offset < -tol, 2, 1))  # in front, at, behind
-            # bincount, not np.add.at: several times faster (per window offset the sums are formed first, then added)
-            m = len(pos)
-            counts += np.bincount(side * m + sample, minlength=3 * m).reshape(3, m)
-            back = side > 0
-            pooled[0] += np.bincount(sample[back], weights=offset[back], minlength=m)
-            pooled[1] += np.bincount(sample[back], weights=var_p[back], minlength=m)
+    cells = np.column_stack([pixel_cells(az, el, img.pixel, drow, dcol)[0] for drow in (-1, 0, 1)
+                             for dcol in (-1, 0, 1)])
+    # only rays through the facet say what is at its place: a neighbour's surface beside a thin face, or one
+    # crossing a removed face's plane, is not the face (window_kernel: the test, per sample and window cell)
+    window_sides(cells, judged, pos, normals, np.zeros((0, 3, 3)) if tris is None else np.ascontiguousarray(tris),
+                 FOOTPRINT * img.pixel * depth, var_e, img.eye, img.keys, img.starts, img.counts, img.points,
+                 img.cov6, k, counts, pooled)
     front, at, behind = counts
     # each point within k σ of the plane, their mean clearly behind it: a surface a noisy scanner measured a few
     # σ behind a removed part's place (the floor under a pipe, 5 cm below at σ 3 cm) is not the part
@@ -210,21 +186,3 @@ def facing_normals(eye: np.ndarray, pos: np.ndarray, depth: np.ndarray, tris: np
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     facing = np.einsum("ij,ij->i", normals, toward)
     return np.where(facing[:, None] < 0, -normals, normals), np.abs(facing) > MAX_COS_GRAZING
-
-
-def through_facet(eye: np.ndarray, pts: np.ndarray, tris: np.ndarray, normals: np.ndarray, margin: np.ndarray
-                  ) -> np.ndarray:
-    """Whether the ray from the eye to each point meets its facet's plane within ``margin`` of the facet."""
-    ray = pts - eye
-    across = np.einsum("ij,ij->i", normals, ray)
-    t = np.einsum("ij,ij->i", normals, tris[:, 0] - eye) / np.where(np.abs(across) > 1e-300, across, 1e-300)
-    meet = eye + t[:, None] * ray
-    inside = t > 0
-    for i in range(3):  # the three edges; pairs are vectorised
-        a, b, c = tris[:, i], tris[:, (i + 1) % 3], tris[:, (i + 2) % 3]
-        edge = b - a
-        inward = (c - a) - (np.einsum("ij,ij->i", c - a, edge) / np.maximum(
-            np.einsum("ij,ij->i", edge, edge), 1e-300))[:, None] * edge
-        inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-300)
-        inside &= np.einsum("ij,ij->i", meet - a, inward) >= -margin
-    return inside

@@ -176,10 +176,14 @@ def main() -> None:
     if args.m3c2_child:
         m3c2_child(args.m3c2_child)
         return
+    warmed = False
     for size in (int(s) for s in args.sizes.split(",")):
         scene = build(args.out / f"{size}", size)
         print(f"scene: {scene['source']}, {scene['facets']:,} facets, {scene['points']:,} points", flush=True)
         gdt, peer = [], []
+        if not warmed:  # numba compiles the kernels once per installation (cached beside them): not counted
+            gdt_run(scene["workflow"].parent)
+            warmed = True
         for _ in range(args.repeats):  # alternate, so that both meet the same load on a shared machine
             gdt.append(gdt_run(scene["workflow"].parent))
             peer.append(m3c2_run(scene["workflow"].parent))

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel
 
+from .compiled import njit
 from .geometry import sample_surface
 from .plugins import StageContext, StageSpec
 from .types import Composite, Correspondences, Dataset, Scores
@@ -141,18 +142,28 @@ def pair_groups(ds: Dataset, corr: Correspondences, reference: Composite) -> lis
 
 
 def lowest_per_element(elements: np.ndarray, cand_score: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per element, the lowest candidate score (NaN when it has none) and the index of that candidate (−1)."""
-    key = np.where(np.isnan(cand_score), np.inf, cand_score)
-    order = np.lexsort((key, elements))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = elements[order][1:] != elements[order][:-1]
-    best = order[first]
+    """Per element, the lowest candidate score (NaN when it has none) and the index of that candidate (−1); among
+    equal scores the first candidate wins."""
     score = np.full(n, np.nan)
     match = np.full(n, -1, dtype=np.int64)
-    ok = np.isfinite(key[best])
-    score[elements[best[ok]]] = cand_score[best[ok]]
-    match[elements[best[ok]]] = best[ok]
+    _lowest(np.ascontiguousarray(elements, dtype=np.int64), np.ascontiguousarray(cand_score, dtype=np.float64),
+            score, match)
     return score, match
+
+
+@njit(cache=True)
+def _lowest(elements, cand_score, score, match) -> None:
+    # one pass in candidate order (a lexsort of a million candidates took 70 ms a dataset); NaN counts as +inf, and
+    # an element whose lowest score is not finite has no match
+    for i in range(len(elements)):
+        value = cand_score[i]
+        key = np.inf if np.isnan(value) else value
+        e = elements[i]
+        if match[e] < 0 or key < score[e]:
+            score[e], match[e] = key, i
+    for e in range(len(score)):
+        if match[e] >= 0 and not np.isfinite(score[e]):
+            score[e], match[e] = np.nan, -1
 
 
 def _sample_offsets(u: Any, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -160,7 +160,7 @@ def report(n: int, gdt: list[dict], peer: list[dict], f1: float) -> None:
     print(f"  ratio gdt / M3C2 points/s: {m_sec / wall:.2f}   gdt F1 on the block: {f1:.4f}")
     bd = gdt[0]["bd"]
     if bd:
-        shares = ", ".join(f"{k} {v:.1%}" for k, v in (bd.get("path_shares") or {}).items())
+        shares = ", ".join(f"{k} {v:.4%}" for k, v in (bd.get("path_shares") or {}).items())
         print(f"  Bhattacharyya paths: {shares or 'n/a'}; largest BC error bound {bd.get('max_integration_error')}"
               f" (ε_T {bd.get('tolerance')})")
 

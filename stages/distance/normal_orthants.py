@@ -52,7 +52,7 @@ def _corner_nodes() -> np.ndarray:
 # Scratch slots of the per-thread work array the kernels pass down (numba heap allocations per pair cost more than
 # the arithmetic): a corner's sines, then an orthant's thresholds and signs; the callers' own slots follow.
 WORK_SINES, WORK_ORTHANT, WORK_CALLER, WORK_SIZE = 0, 20, 32, 112
-CORNER_ORDERS = (6, 9, 13)  # tried in turn per corner; each difference is the error of the lower order
+CORNER_ORDERS = (4, 6, 9, 13)  # tried in turn per corner; each difference is the error of the lower order
 BVN_TABLES = _tables()
 CORNER_NODES = _corner_nodes()
 _TAIL_SPAN = 55.3  # u(2a + u) = 55.3: φ(a + u) / φ(a) = e^-27.6 ≈ 1e-12, where the corner integral is cut
@@ -231,8 +231,10 @@ def _tail_corner(a, r01: float, r02: float, r12: float, tables, nodes, budget: f
     difference is within ``budget``, or the last ones'."""
     coarse = _corner(a, r01, r02, r12, tables, nodes, 0, work)
     fine = _corner(a, r01, r02, r12, tables, nodes, 1, work)
-    if abs(fine - coarse) > budget:
-        coarse, fine = fine, _corner(a, r01, r02, r12, tables, nodes, 2, work)
+    row = 1
+    while abs(fine - coarse) > budget and row + 1 < len(CORNER_ORDERS):
+        row += 1
+        coarse, fine = fine, _corner(a, r01, r02, r12, tables, nodes, row, work)
     return fine, abs(fine - coarse)
 
 

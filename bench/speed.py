@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from speed_scene import build
+from speed_scene import COUNTER, build
 
 ROOT = Path(__file__).resolve().parents[1]
 GDT = [sys.executable, "-m", "gdt_pipeline.cli"]
@@ -171,6 +171,8 @@ def main() -> None:
     ap.add_argument("--sizes", default="1000000,5000000")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench" / "speed")
+    ap.add_argument("--cad", type=Path, default=COUNTER, help="The counter part (default: ../shared/data beside the "
+                    "repository); when absent, a generated plate stands in.")
     ap.add_argument("--m3c2-child", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.m3c2_child:
@@ -178,7 +180,7 @@ def main() -> None:
         return
     warmed = False
     for size in (int(s) for s in args.sizes.split(",")):
-        scene = build(args.out / f"{size}", size)
+        scene = build(args.out / f"{size}", size, counter=args.cad)
         print(f"scene: {scene['source']}, {scene['facets']:,} facets, {scene['points']:,} points", flush=True)
         gdt, peer = [], []
         if not warmed:  # numba compiles the kernels once per installation (cached beside them): not counted

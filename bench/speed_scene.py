@@ -2,8 +2,8 @@
 from four stations 0.6 m away, and the default chain's workflow for it.
 
 The part is ``../shared/data/cad_meshes/counter.unitsmm.STL`` (83,750 facets, mm, scaled to metres) with ±0.5 mm
-tolerance boxes; without the shared data a generated part of at least 80 k facets stands in (a subdivided, gently
-waved plate of the same size, so that its facets are as small and as many). The block is 5 × 5 × 3 cm.
+tolerance boxes; without the shared data a generated part of at least 80 k facets stands in (a finely triangulated,
+gently waved plate of the same size, so that its facets are as small and as many). The block is 5 × 5 × 3 cm.
 """
 
 from __future__ import annotations
@@ -53,12 +53,12 @@ stages:
 """
 
 
-def cad_part() -> tuple[trimesh.Trimesh, str]:
+def cad_part(counter: Path = COUNTER) -> tuple[trimesh.Trimesh, str]:
     """The CAD part in metres, centred on the origin and standing on z = 0, and where it came from."""
-    if COUNTER.exists():
-        part = trimesh.load(COUNTER, force="mesh")
+    if counter.exists():
+        part = trimesh.load(counter, force="mesh")
         part.apply_scale(0.001)
-        source = f"{COUNTER.name} (shared data)"
+        source = f"{counter.name} (shared data)"
     else:
         part = _generated_part()
         source = "generated plate (shared data absent)"
@@ -67,16 +67,26 @@ def cad_part() -> tuple[trimesh.Trimesh, str]:
     return part, source
 
 
-def _generated_part() -> trimesh.Trimesh:
-    """A 0.3 × 0.3 × 0.026 m plate subdivided to ≥ 80 k facets with a gentle wave on top (not flat, so that the
-    correspondences and normals meet varied geometry)."""
-    plate = trimesh.creation.box(extents=(0.3, 0.3, 0.026))
-    while len(plate.faces) < 80_000:
-        plate = plate.subdivide()
-    v = plate.vertices.copy()
-    top = v[:, 2] > 0.0129
-    v[top, 2] += 0.002 * np.sin(v[top, 0] * 40) * np.cos(v[top, 1] * 30)
-    return trimesh.Trimesh(v, plate.faces, process=False)
+def _generated_part(n: int = 205) -> trimesh.Trimesh:
+    """A 0.3 × 0.3 × 0.026 m plate like the counter: a top of 2 (n − 1)² small facets (83,232 at n = 205) with a
+    gentle 2 mm wave (not flat, so that normals and correspondences meet varied geometry), walls of one facet
+    pair per top edge, a bottom fanned from its centre; watertight, 85,680 facets."""
+    x = np.linspace(-0.15, 0.15, n)
+    gx, gy = np.meshgrid(x, x, indexing="ij")
+    top = np.column_stack([gx.ravel(), gy.ravel(), 0.026 + 0.002 * np.sin(gx.ravel() * 40) * np.cos(gy.ravel() * 30)])
+    grid = np.arange(n * n).reshape(n, n)
+    quads = np.stack([grid[:-1, :-1], grid[1:, :-1], grid[1:, 1:], grid[:-1, 1:]], axis=-1).reshape(-1, 4)
+    faces = [quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]
+    ring = np.concatenate([grid[:-1, 0], grid[-1, :-1], grid[:0:-1, -1], grid[0, :0:-1]])  # the top's rim, in order
+    bottom = top[ring] * np.array([1.0, 1.0, 0.0])
+    low = n * n + np.arange(len(ring))
+    centre = n * n + len(ring)
+    nxt = np.roll(np.arange(len(ring)), -1)
+    faces += [np.column_stack([ring, low, low[nxt]]), np.column_stack([ring, low[nxt], ring[nxt]]),
+              np.column_stack([low[nxt], low, np.full(len(ring), centre)])]
+    mesh = trimesh.Trimesh(np.vstack([top, bottom, [[0.0, 0.0, 0.0]]]), np.vstack(faces), process=False)
+    mesh.fix_normals()
+    return mesh
 
 
 def block_on(part: trimesh.Trimesh) -> trimesh.Trimesh:
@@ -94,11 +104,11 @@ def stations() -> np.ndarray:
                                         np.full(4, np.sin(el))], axis=1)
 
 
-def build(folder: Path, n_points: int, seed: int = 0) -> dict:
+def build(folder: Path, n_points: int, seed: int = 0, counter: Path = COUNTER) -> dict:
     """Write the scene for about ``n_points`` scan points into ``folder``: CAD, scans with pose and truth files,
     ``workflow.yaml``; return what was written (paths, point count, source of the part)."""
     folder.mkdir(parents=True, exist_ok=True)
-    part, source = cad_part()
+    part, source = cad_part(counter)
     part.export(folder / "cad_part.stl")
     asis = [part, block_on(part)]
     rng = np.random.default_rng(seed)

@@ -28,15 +28,21 @@ def closed_parts(reference: Composite) -> list[Any]:
             if it.dataset.faces is not None and it.visible.all() and is_closed(it.dataset.faces)]
 
 
-def in_contact(pos: np.ndarray, normals: np.ndarray, parts: list[Any], step: float) -> np.ndarray:
-    """Whether the point ``step`` outside each sample (along its facet's outward normal) lies inside a closed part."""
+def in_contact(pos: np.ndarray, normals: np.ndarray, parts: list[Any], step: float, owner: np.ndarray | None = None,
+               chunk: int = 500_000) -> np.ndarray:
+    """Whether the point ``step`` outside each sample (along its facet's outward normal) lies inside a closed part.
+    ``normals`` per sample, or per facet with ``owner`` giving each sample's facet; the probes go to Open3D a chunk
+    at a time (three million samples' probes and normals were 260 MB at once)."""
     import open3d as o3d
 
     out = np.zeros(len(pos), dtype=bool)
     if not parts or not len(pos):
         return out
-    unit = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-    probe = o3d.core.Tensor((pos + step * unit).astype(np.float32))
-    for scene in parts:
-        out |= scene.compute_occupancy(probe).numpy().astype(bool)
+    for s0 in range(0, len(pos), chunk):
+        part = slice(s0, s0 + chunk)
+        nrm = normals[part] if owner is None else normals[owner[part]]
+        unit = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        probe = o3d.core.Tensor((pos[part] + step * unit).astype(np.float32))
+        for scene in parts:
+            out[part] |= scene.compute_occupancy(probe).numpy().astype(bool)
     return out

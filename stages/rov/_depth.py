@@ -134,15 +134,19 @@ def build_image(station: Station, pts: np.ndarray, cov: np.ndarray, pixel_scale:
                       points=pts[order], cov6=cov6, free_range=station.free_range)
 
 
-def window_votes(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndarray | None, k: float
-                 ) -> np.ndarray:
+def window_votes(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndarray | None, k: float,
+                 owner: np.ndarray | None = None) -> np.ndarray:
     """Per sample (position, covariance, the (3,3) corners of its facet or None for points), what this station
     says of its place, as votes (2, M): points at it and points behind it (an empty window within a pose file's
-    range is one vote behind); none where the station's points mostly stand in front of it (hidden from it)."""
-    out = np.zeros((2, len(pos)), dtype=np.int64)
+    range is one vote behind); none where the station's points mostly stand in front of it (hidden from it).
+
+    With ``owner``, ``cov`` and ``tris`` are per element and each sample takes its owner's, gathered a chunk at a
+    time (a million samples' covariances and corners are 144 MB)."""
+    out = np.zeros((2, len(pos)), dtype=np.int32)
     for s0 in range(0, len(pos), CHUNK):
         part = slice(s0, s0 + CHUNK)
-        out[:, part] = votes_chunk(img, pos[part], cov[part], None if tris is None else tris[part], k)
+        rows = part if owner is None else owner[part]
+        out[:, part] = votes_chunk(img, pos[part], cov[rows], None if tris is None else tris[rows], k)
     return out
 
 
@@ -154,7 +158,7 @@ def votes_chunk(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndar
     az, el, depth = angles(img.frame, img.eye, pos)
     normals, judged = facing_normals(img.eye, pos, depth, tris)
     var_e = np.einsum("ij,ijk,ik->i", normals, cov, normals)
-    counts = np.zeros((3, len(pos)), dtype=np.int64)  # front, at, behind
+    counts = np.zeros((3, len(pos)), dtype=np.int32)  # front, at, behind
     pooled = np.zeros((2, len(pos)))  # over the points not in front: sum of offsets, sum of their variances
     cells = np.column_stack([pixel_cells(az, el, img.pixel, drow, dcol)[0] for drow in (-1, 0, 1)
                              for dcol in (-1, 0, 1)])

@@ -18,6 +18,7 @@ from ._occlusion import blocked_by_confirmed, confirmed_facets
 from ._samples import area_samples
 
 MAX_SAMPLES = 4_000_000  # per reference item: beyond it, facets get fewer samples each
+SAMPLE_CHUNK = 500_000  # samples a station judges at once
 
 
 @dataclass
@@ -70,7 +71,7 @@ def sample_states(ds: Dataset, visible: np.ndarray, inside: np.ndarray, pos: np.
     many points outweigh a far one's few): present where at least as many points lie at it as behind it, seen
     through where more lie behind; HIDDEN where stations looked but had surface in front of it or no points at it;
     NONE where no station could look."""
-    votes = np.zeros((2, len(pos)), dtype=np.int64)
+    votes = np.zeros((2, len(pos)), dtype=np.int32)
     looked_at = np.zeros(len(pos), dtype=bool)
     through = []
     cov = ds.element_covariance() if ds.uncertainty is not None else np.zeros((ds.n_elements, 3, 3))
@@ -80,15 +81,19 @@ def sample_states(ds: Dataset, visible: np.ndarray, inside: np.ndarray, pos: np.
     for k, (st, img) in enumerate(zip(stations, images, strict=True)):
         if img is None or not todo.size:
             continue
-        cand = todo[st.contains(pos[todo])]
-        if normals is not None and p.cull_back_faces:
-            cand = cand[np.einsum("ij,ij->i", normals[owner[cand]], st.eye - pos[cand]) > 0]
-        if cand.size:
-            v = window_votes(img, pos[cand], cov[owner[cand]], None if tris is None else tris[owner[cand]],
-                             p.k_sigma)
-            votes[:, cand] += v
-            looked_at[cand] = True
-            through.append((k, cand[v[1] > 0]))
+        seen_through = []
+        for s0 in range(0, len(todo), SAMPLE_CHUNK):  # the gathers below are 24-72 B a sample: a chunk at a time
+            cand = todo[s0:s0 + SAMPLE_CHUNK]
+            cand = cand[st.contains(pos[cand])]
+            if normals is not None and p.cull_back_faces:
+                cand = cand[np.einsum("ij,ij->i", normals[owner[cand]], st.eye - pos[cand]) > 0]
+            if cand.size:
+                v = window_votes(img, pos[cand], cov, tris, p.k_sigma, owner=owner[cand])
+                votes[:, cand] += v
+                looked_at[cand] = True
+                seen_through.append(cand[v[1] > 0])
+        if seen_through:
+            through.append((k, np.concatenate(seen_through)))
     at, behind = votes
     state = np.where((at > 0) & (at >= behind), PRESENT, np.where(behind > at, THROUGH,
                                                                   np.where(looked_at, HIDDEN, NONE)))
@@ -137,11 +142,16 @@ def depth_view(reference: Composite, rov: RegionOfView, recent: list[Dataset], s
     for item in reference.items:
         ds = item.dataset
         area_spacing = max(spacing, np.sqrt(_total_area(ds) / MAX_SAMPLES)) if ds.faces is not None else spacing
-        pos, owner = area_samples(ds, area_spacing, p.samples_per_facet)
+        # a facet turned away from every station is judged by none (sample_states culls it per sample): one
+        # sample carries its "not seen" as well as m² (the bottom of a part held 40 % of the samples)
+        away = facing_no_station(ds, stations) if ds.faces is not None and p.cull_back_faces else None
+        pos, owner = area_samples(ds, area_spacing, p.samples_per_facet, away)
         looked = rov.contains(pos)
         if ds.faces is not None:
             # float32 ray casting near the data: the probe steps clear of round-off at the scene's size
-            looked &= ~in_contact(pos, ds.facet_normals()[owner], parts, max(0.02 * spacing, 1e-5 * extent))
+            ask = np.flatnonzero(looked)  # only samples inside the region can be in view at all
+            looked[ask] = ~in_contact(pos[ask], ds.facet_normals(), parts, max(0.02 * spacing, 1e-5 * extent),
+                                      owner=owner[ask])
         looks.append(sample_states(ds, item.visible, looked, pos, owner, stations, images, p))
     if p.confirmed_occlude:
         confirmed = confirmed_facets([(it.dataset, matched(lk, it.dataset.n_elements))
@@ -162,6 +172,19 @@ def depth_view(reference: Composite, rov: RegionOfView, recent: list[Dataset], s
             out.counts[name] += int(np.sum(lk.state == code))
         out.counts["samples"] += len(lk.state)
     return out
+
+
+def facing_no_station(ds: Dataset, stations: list[Station]) -> np.ndarray:
+    """Per facet, whether every station lies behind its plane (at every corner: then at every point of it; a
+    station within round-off of the plane counts as in front)."""
+    normals = ds.facet_normals()
+    tri = ds.points[ds.faces]
+    tol = 1e-9 * np.linalg.norm(normals, axis=1) * max(float(np.ptp(ds.points, axis=0).max()), 1e-12)
+    away = np.ones(len(tri), dtype=bool)
+    for st in stations:
+        front = np.einsum("fj,fkj->fk", normals, st.eye - tri).max(axis=1) > -tol
+        away &= ~front
+    return away
 
 
 def _total_area(ds: Dataset) -> float:

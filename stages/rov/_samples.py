@@ -24,15 +24,18 @@ def sub_centroids(m: int) -> np.ndarray:
     return np.column_stack([1 - uv.sum(axis=1), uv])
 
 
-def area_samples(ds: Dataset, spacing: float, cap: int) -> tuple[np.ndarray, np.ndarray]:
+def area_samples(ds: Dataset, spacing: float, cap: int, single: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Sample positions and the element each belongs to: about one per spacing² of each facet (at most ``cap``,
-    at least one), or the points themselves."""
+    at least one; exactly one for the facets ``single`` marks), or the points themselves."""
     if ds.faces is None:
         return np.asarray(ds.points), np.arange(len(ds.points))
     tri = ds.points[ds.faces]
     area = 0.5 * np.linalg.norm(ds.facet_normals(), axis=1)
     per_side = np.clip(np.ceil(np.sqrt(area / max(spacing, 1e-12) ** 2)), 1, max(1, int(np.sqrt(cap))))
     per_side = per_side.astype(np.int64)
+    if single is not None:
+        per_side[single] = 1
     pos, owner = [], []
     for m in np.unique(per_side):  # a loop over the few subdivision levels; facets are vectorised
         idx = np.flatnonzero(per_side == m)

@@ -26,7 +26,7 @@ from scipy.special import ndtr
 from gdt_pipeline import BoxUncertainty, GaussianUncertainty, MixtureUncertainty
 from gdt_pipeline.geometry import det3, quad_inv3, sym3
 
-from .box_probability import PATHS, gauss_box_bc
+from .box_probability import PATHS, gauss_box_bc, genz_box_probability
 
 K_SQRT = (8.0 * np.pi) ** 0.75
 _CHUNK = 20_000
@@ -99,7 +99,6 @@ _Z_CUT = 6.0  # one tail beyond holds 1e-9: far below the 1e-6 tolerance on BC
 _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 
 
-ORDERS = (10, 14, 20, 28, 40, 56)  # Gauss–Legendre orders tried in turn; the cost grows with order²
 
 
 def bc_gauss_box(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUncertainty, *, eps: float = 1e-6,
@@ -137,7 +136,7 @@ def _bc_gauss_box_chunk(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box
         sub = box.take(todo)
         m, c, h = _box_frame(mu[todo], cov[todo], sub, center[todo])
         scale = K_SQRT * (det3(c) / 8.0) ** 0.25 / np.sqrt(np.prod(2.0 * h, axis=1))
-        prob, err[todo] = _genz_adaptive(m, c, h, scale, eps)
+        prob, err[todo] = genz_box_probability(m, c, h, scale, eps)
         bc[todo] = scale * prob
     return bc, err
 
@@ -145,24 +144,6 @@ def _bc_gauss_box_chunk(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box
 def _count(paths: dict[str, int], name: str, k: int) -> None:
     if k:
         paths[name] = paths.get(name, 0) + k
-
-
-def _genz_adaptive(m: np.ndarray, c: np.ndarray, h: np.ndarray, scale: np.ndarray, eps: float
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Box probabilities by Genz quadrature, the order raised per pair until two orders agree to ``eps`` on BC."""
-    prob, err = np.empty(len(m)), np.zeros(len(m))
-    todo = np.arange(len(m))
-    prev = box_prob_genz(m, c, h, ORDERS[0])
-    prob[:] = prev
-    for order in ORDERS[1:]:
-        if not todo.size:
-            break
-        cur = box_prob_genz(m[todo], c[todo], h[todo], order)
-        diff = np.abs(cur - prev) * scale[todo]
-        prob[todo], err[todo] = cur, diff
-        keep = diff > eps
-        todo, prev = todo[keep], cur[keep]
-    return prob, err
 
 
 def bc_box_box(c1: np.ndarray, b1: BoxUncertainty, c2: np.ndarray, b2: BoxUncertainty

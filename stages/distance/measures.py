@@ -112,20 +112,6 @@ def bc_gauss_box(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUn
     is that last difference; pairs that never agree keep the highest order's value and bound). ``paths`` (if given)
     counts the pairs per path.
     """
-    n = len(mu)
-    bc, err = np.empty(n), np.zeros(n)
-    for s in range(0, n, _PAIR_CHUNK):
-        sl = slice(s, min(n, s + _PAIR_CHUNK))
-        bc[sl], err[sl] = _bc_gauss_box_chunk(mu[sl], cov[sl], center[sl], box.take(np.arange(sl.start, sl.stop)),
-                                              eps, paths)
-    return bc, err
-
-
-_PAIR_CHUNK = 200_000  # pairs per pass: bounds the (n, 3, 3) temporaries of the box frame
-
-
-def _bc_gauss_box_chunk(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUncertainty, eps: float,
-                        paths: dict[str, int] | None) -> tuple[np.ndarray, np.ndarray]:
     axes = np.eye(3)[None] if box.rotation is None else box.rotation
     bc, err, path = gauss_box_bc(mu, cov, center, axes, box.half_widths, eps)
     if paths is not None:
@@ -133,8 +119,7 @@ def _bc_gauss_box_chunk(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box
             _count(paths, name, int(np.sum(path == k)))
     todo = np.flatnonzero(path == 2)
     if todo.size:
-        sub = box.take(todo)
-        m, c, h = _box_frame(mu[todo], cov[todo], sub, center[todo])
+        m, c, h = _box_frame(mu[todo], cov[todo], box.take(todo), center[todo])
         scale = K_SQRT * (det3(c) / 8.0) ** 0.25 / np.sqrt(np.prod(2.0 * h, axis=1))
         prob, err[todo] = genz_box_probability(m, c, h, scale, eps)
         bc[todo] = scale * prob

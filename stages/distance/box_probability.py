@@ -43,6 +43,7 @@ from .normal_orthants import (
     bvnu,
     bvnu_small,
     corner_bound,
+    legendre_rows,
     orthant,
     phi,
 )
@@ -201,16 +202,7 @@ GENZ_ORDERS = (10, 14, 20, 28, 40, 56)  # Gauss–Legendre orders tried in turn 
 _Z_CUT = 6.0  # each outer variable is cut at ±6: one tail beyond holds 1e-9
 
 
-def _genz_nodes() -> np.ndarray:
-    """Gauss–Legendre nodes and weights on [0, 1], one row per order of ``GENZ_ORDERS``: (orders, 2, 56)."""
-    out = np.zeros((len(GENZ_ORDERS), 2, max(GENZ_ORDERS)))
-    for row, order in enumerate(GENZ_ORDERS):
-        x, w = np.polynomial.legendre.leggauss(order)
-        out[row, 0, :order], out[row, 1, :order] = 0.5 * (x + 1.0), 0.5 * w
-    return out
-
-
-_GENZ_NODES = _genz_nodes()
+_GENZ_NODES = legendre_rows(GENZ_ORDERS)
 
 
 @njit(cache=True)

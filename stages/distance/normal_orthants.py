@@ -40,12 +40,12 @@ def _tables() -> np.ndarray:
     return out
 
 
-def _corner_nodes() -> np.ndarray:
-    """Gauss–Legendre nodes and weights on [0, 1] for the corner integrals, one row per order, shape (3, 2, 13)."""
-    out = np.zeros((len(CORNER_ORDERS), 2, max(CORNER_ORDERS)))
-    for row, order in enumerate(CORNER_ORDERS):
+def legendre_rows(orders: tuple[int, ...]) -> np.ndarray:
+    """Gauss–Legendre nodes and weights on [0, 1], one row (x, w) per order, padded: (len(orders), 2, max(orders))."""
+    out = np.zeros((len(orders), 2, max(orders)))
+    for row, order in enumerate(orders):
         x, w = np.polynomial.legendre.leggauss(order)
-        out[row, 0, :order], out[row, 1, :order] = (x + 1.0) / 2.0, w / 2.0
+        out[row, 0, :order], out[row, 1, :order] = 0.5 * (x + 1.0), 0.5 * w
     return out
 
 
@@ -55,7 +55,7 @@ WORK_SINES, WORK_ORTHANT, WORK_CALLER, WORK_SIZE = 0, 20, 32, 112
 MIN_DECAY = 2.0  # a tail corner is integrated only when its outer variable starts this many σ out
 CORNER_ORDERS = (6, 9, 13)  # tried in turn per corner; each difference is the error of the lower order
 BVN_TABLES = _tables()
-CORNER_NODES = _corner_nodes()
+CORNER_NODES = legendre_rows(CORNER_ORDERS)
 _TAIL_SPAN = 55.3  # u(2a + u) = 55.3: φ(a + u) / φ(a) = e^-27.6 ≈ 1e-12, where the corner integral is cut
 
 

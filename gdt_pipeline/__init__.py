@@ -4,7 +4,17 @@ detection. This module is the public API a plugin builds on: the hook marker, th
 from importlib.metadata import PackageNotFoundError, version
 
 from .errors import GdtError, InputError, PluginError, StageError, WorkflowError
-from .plugins import ReaderSpec, ReadRequest, StageContext, StageSpec, hookimpl, hookspec
+from .plugins import (
+    ExecutorOptions,
+    ExecutorSpec,
+    ReaderSpec,
+    ReadRequest,
+    StageContext,
+    StageSpec,
+    TileExecutor,
+    hookimpl,
+    hookspec,
+)
 from .types import (
     BoxUncertainty,
     Change,
@@ -40,6 +50,8 @@ __all__ = [
     "Correspondences",
     "Dataset",
     "EpochInfo",
+    "ExecutorOptions",
+    "ExecutorSpec",
     "FusionReason",
     "GaussianUncertainty",
     "GdtError",
@@ -57,6 +69,7 @@ __all__ = [
     "StageContext",
     "StageError",
     "StageSpec",
+    "TileExecutor",
     "Uncertainty",
     "WorkflowError",
     "__version__",

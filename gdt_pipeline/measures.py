@@ -8,6 +8,7 @@ ones use:
 - ``null_simulator``: scores of unchanged pairs drawn from the actual uncertainty models (``Scores.simulate``, what
   the ``calibrated_threshold`` stage needs);
 - ``run_pair_measure`` and ``distance_stage``: turn a pair function into a distance stage;
+- ``attach_null_simulators``: the simulators again over the whole epoch, after a tiled run (a stage's ``finish``);
 - ``euclidean``: the plain (cloud-to-cloud) distance as a pair function;
 - ``reference_cloud``: the composite so far as one point cloud, for measures that compare clouds rather than pairs.
 
@@ -243,15 +244,34 @@ def run_pair_measure(ctx: StageContext, name: str, measure: PairMeasure, toleran
     return {"scores": out}
 
 
+def attach_null_simulators(ctx: StageContext, measure: PairMeasure, prepare: Prepare | None = None
+                           ) -> dict[str, Any]:
+    """Every ``Scores`` of the epoch given the null simulator ``run_pair_measure`` attaches, over all of the epoch's
+    pairs: a distance stage's ``finish`` after a tiled run (simulators are closures and stay in their tile)."""
+    by_query = {c.query: c for c in ctx["correspondences"]}
+    out = []
+    for s in ctx["scores"]:
+        sources: list[Any] = pair_sources(ctx["recent"][s.query], by_query[s.query], ctx["reference"])
+        if prepare is not None:
+            sources = prepare([src.whole() for src in sources], s.query)
+        out.append(dataclasses.replace(s, simulate=null_simulator(sources, measure)))
+    return {"scores": out}
+
+
 def distance_stage(*, name: str, measure: ParamsMeasure, params: type[BaseModel], version: str,
                    description: str = "") -> StageSpec:
-    """A distance stage from a pair function ``measure(group, rng, params)``; ``params`` is the validated model."""
+    """A distance stage from a pair function ``measure(group, rng, params)``; ``params`` is the validated model. It
+    runs tile by tile (a pair's score depends on the pair only)."""
 
     def run(ctx: StageContext) -> dict[str, Any]:
         return run_pair_measure(ctx, name, lambda g, rng: measure(g, rng, ctx.params))
 
+    def finish(ctx: StageContext) -> dict[str, Any]:
+        return attach_null_simulators(ctx, lambda g, rng: measure(g, rng, ctx.params))
+
     return StageSpec(name=name, family="distance", version=version, params=params, run=run,
-                     requires=DISTANCE_REQUIRES, provides=("scores",), description=description)
+                     requires=DISTANCE_REQUIRES, provides=("scores",), description=description, tiling="tile",
+                     finish=finish)
 
 
 def euclidean(group: PairGroup, rng: np.random.Generator, scale: float = 1.0) -> MeasureResult:

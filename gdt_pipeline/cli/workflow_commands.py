@@ -49,6 +49,11 @@ def rich_reporter(progress: Progress | None) -> Any:
         def stage_finished(self, epoch: Any, index: int, spec: Any, seconds: float) -> None:
             err_console.print(f"  {spec.family:<14} {spec.name:<18} {seconds:7.2f} s")
 
+        def executor_opened(self, name: str, executor: Any) -> None:
+            dash = getattr(executor, "dashboard", None)
+            err_console.print(f"tiles run on the {name} executor" + (f"; Dask dashboard: {dash}" if dash else ""),
+                              highlight=False, soft_wrap=True)
+
         def epoch_finished(self, summary: Any) -> None:
             c = summary.counts
             err_console.print(f"  -> {summary.layer.name}: {c['unchanged']} unchanged, {c['new']} new, "
@@ -64,22 +69,54 @@ def rich_reporter(progress: Progress | None) -> Any:
 @click.option("-q", "--quiet", is_flag=True, help="No progress output.")
 @click.option("-v", "--verbose", count=True, help="More log output (-v info, -vv debug).")
 @click.option("--log-file", type=click.Path(path_type=Path), help="Append a structured JSON-lines log here.")
-def run(workflow: Path, twin: Path | None, overwrite: bool, quiet: bool, verbose: int, log_file: Path | None) -> None:
+@click.option("--executor", help="Run tiles on this executor: serial, processes or dask (default: the workflow's).")
+@click.option("--workers", type=click.IntRange(min=1), help="Worker processes of the executor (default: one per core).")
+@click.option("--tile", type=click.FloatRange(min=0, min_open=True),
+              help="Cut each epoch into 3-D tiles of this edge (twin units); see docs/scale.md.")
+@click.option("--tile-elements", type=click.IntRange(min=1000),
+              help="Instead of --tile: at most this many recent elements in one tile's core.")
+@click.option("--address", help="Dask scheduler to use (tcp://host:8786) instead of a local cluster.")
+def run(workflow: Path, twin: Path | None, overwrite: bool, quiet: bool, verbose: int, log_file: Path | None,
+        executor: str | None, workers: int | None, tile: float | None, tile_elements: int | None,
+        address: str | None) -> None:
     """Run WORKFLOW end to end and write its twin."""
     from ..runner import run_workflow
+    from ..workflow import load_workflow
 
     setup_logging(verbose, log_file)
     registry = installed_registry()
+    tiling = _tiling(load_workflow(workflow, registry).model.execution, executor, workers, tile, tile_elements,
+                     address)
+    kwargs = {"registry": registry, "twin": twin, "overwrite": overwrite, "tiling": tiling}
     if quiet:
-        result = run_workflow(workflow, registry=registry, twin=twin, overwrite=overwrite)
+        result = run_workflow(workflow, **kwargs)
     else:
         with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
                       console=err_console, transient=True) as progress:
-            result = run_workflow(workflow, registry=registry, twin=twin, overwrite=overwrite,
-                                  reporter=rich_reporter(progress))
+            result = run_workflow(workflow, reporter=rich_reporter(progress), **kwargs)
     out_console.print(f"twin written to {result.twin}", highlight=False, soft_wrap=True)
     out_console.print(f"root layer: {result.twin / 'twin.usda'}   lock: {result.lock}", highlight=False,
                       soft_wrap=True)
+
+
+def _tiling(execution: Any, executor: str | None, workers: int | None, tile: float | None,
+            tile_elements: int | None, address: str | None) -> Any:
+    """The workflow's execution block with the command line's choices on top."""
+    from ..runner import TilingOptions
+
+    if address and not executor:
+        executor = "dask"
+    if tile is not None:
+        tile_elements = None
+    elif tile_elements is not None:
+        tile = None
+    else:
+        tile, tile_elements = execution.tile, execution.tile_elements
+    if (executor or address or workers) and tile is None and tile_elements is None:
+        raise click.UsageError("an executor runs tiles: give --tile or --tile-elements (or `execution.tile` in the "
+                               "workflow)")
+    return TilingOptions(executor=executor or execution.executor, workers=workers or execution.workers, tile=tile,
+                         max_elements=tile_elements, address=address or execution.address)
 
 
 @click.command()

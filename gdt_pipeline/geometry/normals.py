@@ -13,3 +13,15 @@ def estimate_normals(points: np.ndarray, neighbours: int) -> np.ndarray:
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points - origin))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=neighbours))
     return np.asarray(pcd.normals)
+
+
+def knn_reach(points: np.ndarray, neighbours: int) -> np.ndarray:
+    """Per point, the distance to its ``neighbours``-th nearest point (itself included, as Open3D counts): how far
+    a k-nearest neighbourhood reached."""
+    from scipy.spatial import cKDTree
+
+    k = min(neighbours, len(points))
+    if k == 0:
+        return np.zeros(0)
+    dist, _ = cKDTree(points).query(points, k=[k], workers=-1)
+    return dist[:, 0]

@@ -1,4 +1,5 @@
-"""The registry: discovers plugins through the ``gdt_pipeline`` entry points and collects their stages and readers.
+"""The registry: discovers plugins through the ``gdt_pipeline`` entry points and collects their stages, readers and
+tile executors.
 
 Conventions (after conda's and tox's plugin managers): hooks return named records, a duplicate name is an error, an
 unknown name errors with "choose one of", a plugin that fails to load is a warning and is skipped, a hook
@@ -22,7 +23,17 @@ import pluggy
 from pydantic import BaseModel, ConfigDict
 
 from ..errors import PluginError
-from .specs import BLOCK_ENV, ENTRY_POINT_GROUP, FAMILIES, NAME_RE, PROJECT, GdtSpecs, ReaderSpec, StageSpec
+from .specs import (
+    BLOCK_ENV,
+    ENTRY_POINT_GROUP,
+    FAMILIES,
+    NAME_RE,
+    PROJECT,
+    ExecutorSpec,
+    GdtSpecs,
+    ReaderSpec,
+    StageSpec,
+)
 
 log = logging.getLogger("gdt.plugins")
 
@@ -68,6 +79,16 @@ def _check_spec(spec: object, origin: str) -> str | None:
     return _check_common(spec, origin)
 
 
+def _check_executor(spec: object, origin: str) -> str | None:
+    if not isinstance(spec, ExecutorSpec):
+        return f"{origin}: gdt_executors returned {type(spec).__name__}, not an ExecutorSpec"
+    if not NAME_RE.match(spec.name):
+        return f"{origin}: executor name {spec.name!r} must match [a-z][a-z0-9_]*"
+    if not callable(spec.open):
+        return f"{origin}: executor {spec.name!r} open is not callable"
+    return None
+
+
 def _check_reader(spec: object, origin: str) -> str | None:
     if not isinstance(spec, ReaderSpec):
         return f"{origin}: gdt_readers returned {type(spec).__name__}, not a ReaderSpec"
@@ -82,9 +103,11 @@ class Registry:
     """The stages and readers available in this environment, by unique name."""
 
     def __init__(self, stages: Mapping[str, StageSpec], plugins: Sequence[_LoadedPlugin], warnings: Sequence[str],
-                 manager: pluggy.PluginManager, readers: Mapping[str, ReaderSpec] | None = None) -> None:
+                 manager: pluggy.PluginManager, readers: Mapping[str, ReaderSpec] | None = None,
+                 executors: Mapping[str, ExecutorSpec] | None = None) -> None:
         self._stages = dict(sorted(stages.items()))
         self._readers = dict(sorted((readers or {}).items()))
+        self._executors = dict(sorted((executors or {}).items()))
         self.plugins = list(plugins)
         self.warnings = list(warnings)
         self.manager = manager
@@ -120,6 +143,17 @@ class Registry:
         if spec is None:
             raise PluginError(unknown_name_message("reader", name, list(self._readers)))
         return spec
+
+    def executor(self, name: str) -> ExecutorSpec:
+        """The tile executor called ``name``, or an error naming the installed executors."""
+        spec = self._executors.get(name)
+        if spec is None:
+            raise PluginError(unknown_name_message("executor", name, list(self._executors)))
+        return spec
+
+    def executors(self) -> list[ExecutorSpec]:
+        """The installed tile executors, by name."""
+        return list(self._executors.values())
 
     def closest(self, name: str, *, chain_only: bool = True) -> StageSpec | None:
         """The stage whose name is closest to a misspelt one, if any is close."""
@@ -222,8 +256,10 @@ def _collect(pm: pluggy.PluginManager, hook: str, loaded: list[_LoadedPlugin], w
             if problem:
                 warnings.append(problem + "; skipped")
                 continue
-            spec = dataclasses.replace(spec, params=_forbid_extra(spec.params), plugin=plugin.dist,
-                                       plugin_version=plugin.version, entry_point=plugin.entry_point)
+            stamp = {"plugin": plugin.dist, "plugin_version": plugin.version, "entry_point": plugin.entry_point}
+            if hasattr(spec, "params"):
+                stamp["params"] = _forbid_extra(spec.params)
+            spec = dataclasses.replace(spec, **stamp)
             if spec.name in records:
                 other = records[spec.name]
                 raise PluginError(
@@ -245,9 +281,10 @@ def load_registry(*, blocked: Iterable[str] | None = None, extra: Iterable[tuple
     loaded = _register(pm, sources, warnings)
     stages = _collect(pm, "gdt_stages", loaded, warnings, _check_spec, "stage")
     readers = _collect(pm, "gdt_readers", loaded, warnings, _check_reader, "reader")
+    executors = _collect(pm, "gdt_executors", loaded, warnings, _check_executor, "executor")
     for name in set(stages) & set(readers):
         raise PluginError(f"the name {name!r} is both a stage ({stages[name].plugin}) and a reader "
                           f"({readers[name].plugin}); names must be unique")
     for w in warnings:
         log.warning(w)
-    return Registry(stages, loaded, warnings, pm, readers)
+    return Registry(stages, loaded, warnings, pm, readers, executors)

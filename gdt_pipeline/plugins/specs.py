@@ -65,6 +65,26 @@ class NullProgress:
 
 
 @dataclass(frozen=True)
+class TileBounds:
+    """The tile a stage runs on: its core box, and the box (core plus halo) inside which its inputs are complete."""
+
+    core_lower: np.ndarray
+    core_upper: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+
+    def shortfall(self, positions: np.ndarray, radii: np.ndarray | float) -> float:
+        """How much farther the halo must reach for every core element's sphere of ``radii`` to lie inside it."""
+        pos = np.asarray(positions, dtype=np.float64)
+        core = np.all((pos >= self.core_lower) & (pos <= self.core_upper), axis=1)
+        if not core.any():
+            return 0.0
+        r = np.broadcast_to(np.asarray(radii, dtype=np.float64), (len(pos),))[core]
+        room = np.minimum((pos[core] - self.lower).min(axis=1), (self.upper - pos[core]).min(axis=1))
+        return float(max(0.0, np.max(r - room)))
+
+
+@dataclass(frozen=True)
 class StageContext:
     """What a stage's ``run`` receives: its validated params, the slots it declared, a seeded rng, and services."""
 
@@ -77,10 +97,19 @@ class StageContext:
     log: logging.Logger
     progress: Progress = field(default_factory=NullProgress)
     notes: dict[str, Any] = field(default_factory=dict)
+    tile: TileBounds | None = None
+    shortfalls: list[float] = field(default_factory=list)
 
     def report(self, **values: Any) -> None:
         """Record figures worth keeping (a tolerance reached, a rate achieved): they go into the epoch's provenance."""
         self.notes.update(values)
+
+    def neighbourhoods(self, positions: np.ndarray, radii: np.ndarray | float) -> None:
+        """Declare that the result at each of ``positions`` used data within ``radii`` of it (a k-nearest search's
+        reach, known only once searched). In a tile whose halo was too narrow for a core element, the runner runs
+        the tile again with a wider one, so tiled results stay those of the whole epoch; elsewhere nothing happens."""
+        if self.tile is not None:
+            self.shortfalls.append(self.tile.shortfall(positions, radii))
 
     def __getitem__(self, name: str) -> Any:
         """The value of a required slot."""
@@ -105,6 +134,13 @@ class StageSpec:
     static rule about the slots available (return a message to reject). ``validate(params, workflow_dir)`` may check
     what the params name outside the workflow (files: present, readable, well-formed) before anything runs: it returns
     ``(key, message)`` problems, ``key`` the parameter's dotted path under ``with`` (e.g. ``parts.0.path``).
+
+    Tiling (``docs/scale.md``): a stage with ``tiling="tile"`` promises that its output for a recent element depends
+    only on data within ``reach(params, slots)`` of that element (0 when ``reach`` is None), so the runner may run it
+    on one 3-D tile plus a halo at a time and keep the core. Such a stage provides only ``recent`` (uncertainty
+    attached, geometry untouched), ``correspondences``, ``scores`` or ``change``. ``finish(ctx)``, when given, runs
+    once on the whole epoch's merged slots after a tiled run and returns slots to replace (e.g. a null simulator over
+    every pair); a stage whose output cannot travel between processes (closures) rebuilds it there.
     """
 
     name: str
@@ -118,6 +154,9 @@ class StageSpec:
     description: str = ""
     check: Callable[[frozenset[str]], str | None] | None = None
     validate: Callable[[Any, Path], Sequence[tuple[str, str]]] | None = None
+    tiling: Literal["epoch", "tile"] = "epoch"
+    reach: Callable[[Any, Mapping[str, Any]], float] | None = None
+    finish: Callable[[StageContext], Mapping[str, Any]] | None = None
     plugin: str = ""
     plugin_version: str = ""
     entry_point: str = ""
@@ -167,6 +206,43 @@ class ReaderSpec:
     optional: tuple[str, ...] = ()
 
 
+class TileExecutor(Protocol):
+    """Runs tile tasks somewhere (this process, a pool, a cluster) and hands back their results in task order."""
+
+    dashboard: str | None
+
+    def map(self, fn: Callable[[Any], Any], tasks: Sequence[Any],
+            done: Callable[[int], None] | None = None) -> list[Any]:
+        """``fn(task)`` for every task; ``done(i)`` as each one finishes (any order); results in task order."""
+
+
+@dataclass(frozen=True)
+class ExecutorOptions:
+    """What the user asked of an executor: workers (None: one per core) and a cluster address (Dask)."""
+
+    workers: int | None = None
+    address: str | None = None
+
+
+@dataclass(frozen=True)
+class ExecutorSpec:
+    """An executor of tiles as a plugin declares it (hook ``gdt_executors``).
+
+    ``open(options)`` is a context manager yielding a :class:`TileExecutor`; it owns the workers it starts. An
+    executor that runs tasks in other processes (``in_process`` False) receives tasks that name their stages, and
+    each worker finds them through its own registry, so every plugin must be installed where the workers run.
+    """
+
+    name: str
+    version: str
+    open: Callable[[ExecutorOptions], contextlib.AbstractContextManager[TileExecutor]]
+    in_process: bool = False
+    description: str = ""
+    plugin: str = ""
+    plugin_version: str = ""
+    entry_point: str = ""
+
+
 class GdtSpecs:
     """Hook specifications of gdt-pipeline."""
 
@@ -178,6 +254,11 @@ class GdtSpecs:
     @hookspec
     def gdt_readers(self) -> Sequence[ReaderSpec]:
         """Return the file readers this plugin provides."""
+        raise NotImplementedError
+
+    @hookspec
+    def gdt_executors(self) -> Sequence[ExecutorSpec]:
+        """Return the tile executors this plugin provides."""
         raise NotImplementedError
 
 

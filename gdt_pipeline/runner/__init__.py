@@ -8,13 +8,12 @@ from .execute import (
     Reporter,
     RunResult,
     execute_plan,
-    run_stage,
     run_workflow,
-    stage_rng,
 )
 from .inputs import check_dataset, read_dataset, read_input, sha256_file
-from .plan import EpochPlan, InputPlan, RunPlan, StagePlan, plan_from_workflow
+from .plan import EpochPlan, InputPlan, RunPlan, StagePlan, TilingOptions, plan_from_workflow
+from .stage_call import element_ordered, run_stage, stage_rng
 
 __all__ = ["LOCK_NAME", "EpochPlan", "EpochSummary", "InputPlan", "Reporter", "RunPlan", "RunResult", "StagePlan",
-           "cache_key", "check_dataset", "execute_plan", "package_versions", "plan_from_workflow", "read_dataset",
-           "read_input", "run_stage", "run_workflow", "sha256_file", "stage_rng"]
+           "TilingOptions", "cache_key", "check_dataset", "element_ordered", "execute_plan", "package_versions",
+           "plan_from_workflow", "read_dataset", "read_input", "run_stage", "run_workflow", "sha256_file", "stage_rng"]

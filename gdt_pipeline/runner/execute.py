@@ -13,6 +13,7 @@ cleaned up by the next run. ``GDT_FAULT`` (tests only) kills the process at a na
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -20,7 +21,6 @@ import os
 import platform
 import shutil
 import time
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -30,9 +30,9 @@ import numpy as np
 
 from twin_store import RUN_LOCK_NAME, TwinStore, TwinStoreError, fault, writer_lock
 
-from ..errors import GdtError, StageError
+from ..errors import GdtError
 from ..names import UNITS
-from ..plugins import NullProgress, Progress, Registry, StageContext, StageSpec, load_registry
+from ..plugins import NullProgress, Progress, Registry, StageContext, StageSpec, TileExecutor, load_registry
 from ..provenance import (
     EpochProvenance,
     EpochRecord,
@@ -42,13 +42,14 @@ from ..provenance import (
     cache_key,
     package_versions,
 )
-from ..slots import valid
 from ..twin import composite_to_elements
 from ..types import Composite, Dataset, EpochInfo, Registration
 from ..workflow import load_workflow
 from .inputs import input_digests, read_input, relative_to_workflow
 from .plan import EpochPlan, RunPlan, StagePlan, plan_from_workflow
+from .stage_call import run_stage, stage_rng
 from .staging import check_overwritable, recover, staging_path, swap_into_place, write_json_atomic
+from .tiled import TileSession, TilingOptions, chain_runs, run_tiles, tileable
 
 log = logging.getLogger("gdt.run")
 
@@ -91,6 +92,9 @@ class Reporter:
     def epoch_finished(self, summary: EpochSummary) -> None:
         """An epoch was written."""
 
+    def executor_opened(self, name: str, executor: TileExecutor) -> None:
+        """A tile executor started (its dashboard, when it has one, is worth showing)."""
+
 
 @dataclass(frozen=True)
 class _RunContext:
@@ -102,53 +106,37 @@ class _RunContext:
     digests: dict[tuple[int, int], str]
     packages: dict[str, str]
     workflow: WorkflowRecord
-
-
-def run_stage(spec: StageSpec, ctx: StageContext, where: str) -> dict[str, Any]:
-    """Run one stage and check that it returned exactly the slots it declares, each of the right type."""
-    try:
-        out = spec.run(ctx)
-    except GdtError as exc:
-        raise type(exc)(f"{where}: {exc}") from exc
-    except (KeyboardInterrupt, MemoryError):
-        raise
-    except Exception as exc:
-        raise StageError(f"{where} failed: {type(exc).__name__}: {exc}") from exc
-    if not isinstance(out, Mapping):
-        raise StageError(f"{where} returned {type(out).__name__}, not a mapping of slots")
-    got, want = set(out), set(spec.provides)
-    if got != want:
-        raise StageError(f"{where} broke its contract: it declares {sorted(want)} but returned {sorted(got)}")
-    for slot, value in out.items():
-        if not valid(slot, value):
-            raise StageError(f"{where} returned a {type(value).__name__} for slot {slot!r}")
-    return dict(out)
-
-
-def stage_rng(seed: int, epoch_index: int, stage_index: int) -> tuple[np.random.Generator, int]:
-    """The stage's own generator and its integer seed, from the workflow seed and the stage's place."""
-    ss = np.random.SeedSequence(seed, spawn_key=(epoch_index, stage_index))
-    return np.random.default_rng(ss), int(ss.generate_state(1, dtype=np.uint32)[0])
+    tiles: TileSession | None = None
 
 
 def run_workflow(path: str | Path, *, registry: Registry | None = None, twin: str | Path | None = None,
-                 overwrite: bool = False, reporter: Reporter | None = None) -> RunResult:
-    """Run a workflow file end to end and write its twin; return where it went."""
+                 overwrite: bool = False, reporter: Reporter | None = None,
+                 tiling: TilingOptions | None = None) -> RunResult:
+    """Run a workflow file end to end and write its twin; return where it went. ``tiling`` overrides the workflow's
+    ``execution`` block."""
     registry = registry or load_registry()
     wf = load_workflow(path, registry)
     target = Path(twin).resolve() if twin is not None else wf.twin_path()
-    return execute_plan(plan_from_workflow(wf, registry), registry, target, overwrite=overwrite, reporter=reporter)
+    plan = plan_from_workflow(wf, registry)
+    return execute_plan(plan, registry, target, overwrite=overwrite, reporter=reporter,
+                        tiling=tiling if tiling is not None else plan.tiling)
 
 
 def execute_plan(plan: RunPlan, registry: Registry, target: Path, *, overwrite: bool = False,
-                 reporter: Reporter | None = None) -> RunResult:
-    """Run a plan into the twin at ``target``, holding the twin's writer lock."""
+                 reporter: Reporter | None = None, tiling: TilingOptions | None = None) -> RunResult:
+    """Run a plan into the twin at ``target``, holding the twin's writer lock (``tiling``: cut epochs into tiles)."""
     reporter = reporter or Reporter()
     target = Path(target).resolve()
     target.parent.mkdir(parents=True, exist_ok=True)
+    tiles = None
+    if tiling is not None and tiling.enabled:
+        registry.executor(tiling.executor)  # an unknown executor fails before anything is read
+        tiles = TileSession(tiling, registry, reporter.executor_opened)
     try:
-        with writer_lock(target):
-            return _run_locked(plan, registry, reporter, target, overwrite)
+        with writer_lock(target), contextlib.ExitStack() as stack:
+            if tiles is not None:
+                stack.enter_context(tiles.stack)
+            return _run_locked(plan, registry, reporter, target, overwrite, tiles)
     except TwinStoreError as exc:
         raise GdtError(str(exc)) from exc
 
@@ -165,13 +153,13 @@ def _check_target(target: Path, overwrite: bool) -> None:
 
 
 def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: Path,
-                overwrite: bool) -> RunResult:
+                overwrite: bool, tiles: TileSession | None) -> RunResult:
     _check_target(target, overwrite)
     run = _RunContext(plan, registry, reporter, input_digests(plan), package_versions(),
                       WorkflowRecord(path=relative_to_workflow(plan.workflow_path, plan.base_dir),
                                      sha256=plan.workflow_sha256, name=plan.name,
                                      dir_from_twin=os.path.relpath(plan.base_dir, target), units=plan.units,
-                                     up_axis=plan.up_axis))
+                                     up_axis=plan.up_axis), tiles)
     staging = staging_path(target)
     if staging.exists():
         shutil.rmtree(staging)
@@ -216,7 +204,12 @@ def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, 
     if composite is not None:
         slots["reference"] = composite
     upstream = [epoch_key] if epoch_key else []
-    records = [_run_chain_stage(run, epoch, stage, info, slots, digests, upstream) for stage in epoch.stages]
+    records: list[StageRecord] = []
+    for stages in chain_runs(epoch.stages, run.tiles is not None):
+        if (len(stages) == 1 and not tileable(stages[0])) or run.tiles is None:
+            records.append(_run_chain_stage(run, epoch, stages[0], info, slots, digests, upstream))
+        else:
+            records += _run_tile_stages(run, epoch, stages, slots, digests, upstream)
     prov = EpochProvenance(
         gdt_pipeline=run.packages.get("gdt-pipeline", "?"), workflow=run.workflow,
         epoch=EpochRecord(epoch.id, epoch.index, epoch.role), seed=plan.seed,
@@ -232,9 +225,7 @@ def _run_chain_stage(run: _RunContext, epoch: EpochPlan, stage: StagePlan, info:
                      digests: list[str], upstream: list[str]) -> StageRecord:
     """Run one stage of the chain on the epoch's slots (updated in place); append its cache key to ``upstream``."""
     spec, s_index = stage.spec, stage.index
-    params = json.loads(stage.params.model_dump_json())
     rng, seed = stage_rng(run.plan.seed, epoch.index, s_index)
-    key = cache_key(spec, params, digests, upstream)
     where = f"epoch {epoch.id}, stage {s_index} {spec.name!r} ({spec.plugin} {spec.plugin_version})"
     visible = {k: v for k, v in slots.items() if k in spec.requires or k in spec.optional or k == "epoch"}
     ctx = StageContext(stage=spec, params=stage.params, slots=visible, epoch=info, rng=rng, seed=seed,
@@ -244,14 +235,40 @@ def _run_chain_stage(run: _RunContext, epoch: EpochPlan, stage: StagePlan, info:
     slots.update(run_stage(spec, ctx, where))
     dt = time.perf_counter() - t0
     run.reporter.stage_finished(epoch, s_index, spec, dt)
+    return _stage_record(run, epoch, stage, digests, upstream, dt, ctx.notes)
+
+
+def _run_tile_stages(run: _RunContext, epoch: EpochPlan, stages: list[StagePlan], slots: dict[str, Any],
+                     digests: list[str], upstream: list[str]) -> list[StageRecord]:
+    """Run a run of tileable stages tile by tile (``tiled``); one record per stage, its seconds summed over tiles."""
+    assert run.tiles is not None
+    for st in stages:
+        run.reporter.stage_started(epoch, st.index, st.spec)
+    names = "+".join(st.spec.name for st in stages)
+    outcome = run_tiles(run.tiles, stages, slots, run.plan.seed,
+                        lambda n: run.reporter.progress.task(f"{names}: tiles", total=n))
+    records = []
+    for st, dt, report in zip(stages, outcome.seconds, outcome.reports, strict=True):
+        run.reporter.stage_finished(epoch, st.index, st.spec, dt)
+        records.append(_stage_record(run, epoch, st, digests, upstream, dt, report))
+    return records
+
+
+def _stage_record(run: _RunContext, epoch: EpochPlan, stage: StagePlan, digests: list[str], upstream: list[str],
+                  seconds: float, report: dict[str, Any]) -> StageRecord:
+    """The provenance record of a stage that ran; its cache key is appended to ``upstream``."""
+    spec, s_index = stage.spec, stage.index
+    params = json.loads(stage.params.model_dump_json())
+    _, seed = stage_rng(run.plan.seed, epoch.index, s_index)
+    key = cache_key(spec, params, digests, upstream)
     log.info("stage done", extra={"event": {"epoch": epoch.id, "stage": spec.name, "index": s_index,
-                                            "seconds": round(dt, 4), "cache_key": key}})
+                                            "seconds": round(seconds, 4), "cache_key": key}})
     upstream.append(key)
     return StageRecord(index=s_index, id=stage.id, uses=spec.name, family=spec.family, version=spec.version,
                        plugin=spec.plugin, plugin_version=spec.plugin_version, entry_point=spec.entry_point,
                        params=params, seed_spawn_key=[epoch.index, s_index], seed=seed,
                        requires=list(spec.requires), provides=list(spec.provides), cache_key=key,
-                       seconds=round(dt, 4), report=json.loads(json.dumps(ctx.notes, default=_plain)))
+                       seconds=round(seconds, 4), report=json.loads(json.dumps(report, default=_plain)))
 
 
 def _write_epoch(store: TwinStore, prov: EpochProvenance, slots: dict[str, Any], target: Path, seconds: float

@@ -46,6 +46,22 @@ class EpochPlan:
 
 
 @dataclass(frozen=True)
+class TilingOptions:
+    """How to tile an epoch: a tile edge (twin units) or a cap on elements per tile, and the executor to use."""
+
+    executor: str = "serial"
+    workers: int | None = None
+    tile: float | None = None
+    max_elements: int | None = None
+    address: str | None = None
+
+    @property
+    def enabled(self) -> bool:
+        """Whether epochs are cut into tiles at all."""
+        return self.tile is not None or self.max_elements is not None
+
+
+@dataclass(frozen=True)
 class RunPlan:
     """Everything a run needs, from a workflow file or from a twin's recorded provenance (audits)."""
 
@@ -57,6 +73,7 @@ class RunPlan:
     units: str
     up_axis: str
     epochs: list[EpochPlan]
+    tiling: TilingOptions = TilingOptions()
 
 
 def plan_from_workflow(wf: LoadedWorkflow, registry: Registry) -> RunPlan:
@@ -70,5 +87,8 @@ def plan_from_workflow(wf: LoadedWorkflow, registry: Registry) -> RunPlan:
         stages = [StagePlan(index=s_index, spec=registry.get(entry.uses), params=entry.with_, id=entry.id)
                   for s_index, entry in iter_chain(wf, epoch)]
         epochs.append(EpochPlan(id=epoch.id, index=e_index, role=epoch.role, inputs=inputs, stages=stages))
+    ex = model.execution
+    tiling = TilingOptions(executor=ex.executor, workers=ex.workers, tile=ex.tile, address=ex.address,
+                           max_elements=ex.tile_elements)
     return RunPlan(name=model.name, workflow_path=wf.path, workflow_sha256=wf.sha256, base_dir=wf.dir,
-                   seed=model.seed, units=model.units, up_axis=model.up_axis, epochs=epochs)
+                   seed=model.seed, units=model.units, up_axis=model.up_axis, epochs=epochs, tiling=tiling)

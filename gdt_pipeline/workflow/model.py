@@ -53,6 +53,20 @@ class StageEntryBase(StrictModel):
         return (self.role is None or self.role == epoch.role) and (self.epochs is None or epoch.id in self.epochs)
 
 
+class ExecutionSpec(StrictModel):
+    """How the run is spread: 3-D tiles and the executor that runs them (``docs/scale.md``); the command line's
+    ``--executor``, ``--workers``, ``--tile`` and ``--address`` override these."""
+
+    executor: str = Field("serial", description="Tile executor: serial, processes (a local pool) or dask.")
+    workers: int | None = Field(None, ge=1, description="Worker processes (default: one per core).")
+    tile: float | None = Field(None, gt=0, description="Tile edge in twin units; default: no tiles (unless "
+                                                       "tile_elements is given).")
+    tile_elements: int | None = Field(None, ge=1000, description="Largest number of recent elements in one tile's "
+                                                                 "core: the tile edge is halved until it fits.")
+    address: str | None = Field(None, description="Address of a running Dask scheduler (tcp://host:8786); "
+                                                  "default: a local cluster.")
+
+
 class WorkflowBase(StrictModel):
     """Fields of a workflow file other than the chain."""
 
@@ -63,6 +77,7 @@ class WorkflowBase(StrictModel):
     units: Units = Field("m", description="Units of the twin.")
     up_axis: Literal["Y", "Z"] = "Z"
     epochs: list[EpochSpec] = Field(min_length=1)
+    execution: ExecutionSpec = Field(default_factory=ExecutionSpec)
 
     @field_validator("epochs")
     @classmethod

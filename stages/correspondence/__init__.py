@@ -13,6 +13,7 @@ makes them new, never drops them.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -22,6 +23,7 @@ from scipy.stats import chi2
 from gdt_pipeline import Correspondences, StageContext, StageSpec, hookimpl
 from gdt_pipeline.geometry import ReferenceIndex
 from gdt_pipeline.geometry.extent import check_scales
+from gdt_pipeline.measures import uncertainty_rows
 
 from .directed import ReferenceMeshes, ReferencePoints, point_to_mesh, point_to_point, query_samples, to_correspondences
 
@@ -111,10 +113,47 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
     return {"correspondences": out}
 
 
+def _largest_variance(u: Any) -> float:
+    """A bound on the largest variance of a model's rows: the largest trace (cheap, and ≥ the top eigenvalue)."""
+    cov = np.asarray(u.covariance(uncertainty_rows(u)))
+    return float(np.einsum("nii->n", cov).max()) if len(cov) else 0.0
+
+
+def _directed_reach(params: DirectedParams, slots: Mapping[str, Any]) -> float:
+    """How far from its element a candidate can lie: the ray and closest-point reach against meshes, the 99 %
+    ellipsoid against points (with the surface-sampling spread), plus a facet's size for samples on recent facets."""
+    recent, reference = slots["recent"], slots["reference"]
+    if any(ds.uncertainty is None for ds in recent):
+        raise ValueError("the search reach needs the recent data's uncertainty: add an uncertainty stage before")
+    var_q = max((_largest_variance(ds.uncertainty) for ds in recent), default=0.0)
+    facet = max((float(np.linalg.norm(ds.points[ds.faces] - ds.element_positions()[:, None], axis=2).max())
+                 for ds in recent if ds.faces is not None and len(ds.faces)), default=0.0)
+    meshes = [it for it in reference.items if it.dataset.faces is not None and it.visible.any()]
+    var_mesh = max((_largest_variance(it.dataset.uncertainty) for it in meshes), default=0.0)
+    reach = params.search_sigmas * np.sqrt(var_q + var_mesh) if meshes else 0.0
+    if any(it.dataset.faces is None and it.visible.any() for it in reference.items):
+        var_pts = ReferencePoints(reference, params.surface_sampling).max_var
+        reach = max(reach, float(np.sqrt(chi2.ppf(params.probability, 3) * (var_q + var_pts))))
+    return float(reach + facet)
+
+
+def _nearest_reach(params: NearestParams, slots: Mapping[str, Any]) -> float:
+    """The search radius; without one, the whole scene's diagonal (every tile then sees everything)."""
+    if params.max_distance is not None:
+        return float(params.max_distance)
+    pts = [ds.points for ds in slots["recent"]] + [it.dataset.points for it in slots["reference"].items]
+    pts = [p for p in pts if len(p)]
+    if not pts:
+        return 0.0
+    return float(np.linalg.norm(np.max([p.max(axis=0) for p in pts], axis=0) - np.min([p.min(axis=0) for p in pts],
+                                                                                          axis=0)))
+
+
 def _stage(name: str, query_kind: str | None, points: bool, meshes: bool, description: str) -> StageSpec:
     return StageSpec(name=name, family="correspondence", version="1.0.0", params=DirectedParams,
                      run=lambda ctx: _directed(ctx, name, query_kind, points, meshes),
-                     requires=("recent", "reference"), provides=("correspondences",), description=description)
+                     requires=("recent", "reference"), provides=("correspondences",), description=description,
+                     tiling="tile", reach=_directed_reach)
 
 
 @hookimpl
@@ -122,7 +161,7 @@ def gdt_stages() -> list[StageSpec]:
     """The built-in correspondence estimators."""
     return [
         StageSpec(name="nearest", family="correspondence", version="1.0.0", params=NearestParams, run=_nearest,
-                  requires=("recent", "reference"), provides=("correspondences",),
+                  requires=("recent", "reference"), provides=("correspondences",), tiling="tile", reach=_nearest_reach,
                   description="Closest visible reference point or facet (Euclidean baseline)."),
         _stage("point_to_point", "points", True, False,
                "Reference points inside the query's 99 % ellipsoid, merged into a mixture."),

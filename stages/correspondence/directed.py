@@ -109,7 +109,8 @@ class ReferencePoints:
         # when a few grazing-angle ToF points have decimetre sigmas; tiers of similar variance (a factor of 4
         # apart) keep each search radius tight while still finding every point whose ellipsoid reaches the query.
         lam = np.linalg.eigvalsh(self.cov)[:, -1]
-        tier = np.floor(np.log(np.maximum(lam, 1e-30) / max(float(lam.min()), 1e-30)) / np.log(4.0)).astype(int)
+        # tiers on a fixed scale (not relative to the smallest variance here) are the same in every tile of an epoch
+        tier = np.floor(np.log(np.maximum(lam, 1e-30)) / np.log(4.0)).astype(int)
         self.tiers = []
         for t in np.unique(tier):
             members = np.flatnonzero(tier == t)

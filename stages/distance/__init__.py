@@ -28,6 +28,8 @@ from gdt_pipeline.measures import (
     DISTANCE_REQUIRES,
     MeasureResult,
     PairGroup,
+    PairMeasure,
+    attach_null_simulators,
     distance_stage,
     euclidean,
     run_pair_measure,
@@ -51,10 +53,11 @@ class BhattacharyyaParams(BaseModel):
                              "Gaussian of equal covariance first (faster, approximate).")
 
 
-def _bhattacharyya(ctx: StageContext) -> dict[str, Any]:
-    p = ctx.params
-    methods: set[str] = set()
-    paths: dict[str, int] = {}
+def _bd_measure(p: BhattacharyyaParams, methods: set[str] | None = None, paths: dict[str, int] | None = None
+                ) -> PairMeasure:
+    """The Bhattacharyya pair function for these params, noting the methods and Gaussian–box paths it used."""
+    methods = set() if methods is None else methods
+    paths = {} if paths is None else paths
 
     def measure(g: PairGroup, rng: np.random.Generator) -> tuple[np.ndarray, None, np.ndarray]:
         u_q, u_r = g.u_q, g.u_r
@@ -67,7 +70,13 @@ def _bhattacharyya(ctx: StageContext) -> dict[str, Any]:
         methods.add(method)
         return bd, None, err
 
-    out = run_pair_measure(ctx, "bhattacharyya", measure, tolerance=p.epsilon)
+    return measure
+
+
+def _bhattacharyya(ctx: StageContext) -> dict[str, Any]:
+    methods: set[str] = set()
+    paths: dict[str, int] = {}
+    out = run_pair_measure(ctx, "bhattacharyya", _bd_measure(ctx.params, methods, paths), tolerance=ctx.params.epsilon)
     total = sum(paths.values())
     ctx.report(methods=sorted(methods), gaussian_box_pairs=total,
                path_shares={k: round(v / total, 6) for k, v in sorted(paths.items())} if total else {})
@@ -147,7 +156,8 @@ def gdt_stages() -> list[StageSpec]:
     return [
         StageSpec(name="bhattacharyya", params=BhattacharyyaParams, run=_bhattacharyya,
                   description="Bhattacharyya distance for every pair of families (closed forms, quadrature, "
-                              "importance sampling; ε_T reported).", **common),
+                              "importance sampling; ε_T reported).", tiling="tile",
+                  finish=lambda ctx: attach_null_simulators(ctx, _bd_measure(ctx.params)), **common),
         distance_stage(name="hotelling", measure=hotelling, params=HotellingParams, version=version,
                        description="Hotelling's T² with known covariances, p-values from χ²(3) (Gaussians only)."),
         StageSpec(name="welch_m3c2", params=WelchParams, run=_welch,

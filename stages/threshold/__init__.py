@@ -136,11 +136,12 @@ def gdt_stages() -> list[StageSpec]:
     """The built-in thresholds."""
     common = {"family": "threshold", "version": "1.2.0", "requires": ("scores",), "provides": ("change",)}
     return [
-        StageSpec(name="fixed", params=FixedParams, run=_fixed, description="Changed where score > τ.", **common),
+        StageSpec(name="fixed", params=FixedParams, run=_fixed, description="Changed where score > τ.",
+                  tiling="tile", **common),
         StageSpec(name="tolerance_multiple", params=ToleranceMultipleParams, run=_tolerance_multiple,
                   description="τ = k·ε_T, the paper's initial value.", **common),
         StageSpec(name="significance", params=SignificanceParams, run=_significance,
-                  description="Changed where the test's p-value < α.", **common),
+                  description="Changed where the test's p-value < α.", tiling="tile", **common),
         StageSpec(name="calibrated_threshold", params=CalibratedParams, run=_calibrated,
                   description="τ for a false-alarm rate, from simulated unchanged pairs of the actual models.",
                   **common),

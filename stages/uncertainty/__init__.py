@@ -42,18 +42,20 @@ def _profile(params: Any, base: Path) -> list[tuple[str, str]]:
 def gdt_stages() -> list[StageSpec]:
     """The built-in uncertainty estimators."""
     common = {"family": "uncertainty", "version": "1.0.0", "requires": ("recent",), "provides": ("recent",)}
+    tiled = {**common, "tiling": "tile"}  # each element's model from that element alone
     return [
         StageSpec(name="constant", params=ConstantParams, run=constant,
-                  description="One Gaussian (isotropic/anisotropic) or tolerance box for a whole dataset.", **common),
+                  description="One Gaussian (isotropic/anisotropic) or tolerance box for a whole dataset.", **tiled),
         StageSpec(name="calibrated", params=CalibratedParams, run=calibrated, validate=_profile_isotropic,
-                  description="Isotropic σ of a profile from `gdt calibrate` (scans of a known object).", **common),
+                  description="Isotropic σ of a profile from `gdt calibrate` (scans of a known object).", **tiled),
         StageSpec(name="sensor_model", params=SensorModelParams, run=sensor_model, validate=_profile,
                   description="Per-point covariance from sensor pose, range and incidence (preset or profile).",
-                  **common),
+                  **tiled),
         StageSpec(name="voxel_mle", params=VoxelMleParams, run=voxel_mle,
                   description="Maximum-likelihood Gaussians on an overlapping voxel grid (dense noisy clouds).",
                   **common),
         StageSpec(name="registration_propagation", family="uncertainty", version="1.0.0", params=PropagationParams,
                   run=registration_propagation, requires=("recent", "registration"), provides=("recent",),
+                  tiling="tile",
                   description="Add the registration's transform covariance to every element (as M3C2-EP)."),
     ]

@@ -9,7 +9,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveInt
 
 from gdt_pipeline import Dataset, GaussianUncertainty, StageContext
-from gdt_pipeline.geometry import estimate_normals
+from gdt_pipeline.geometry import estimate_normals, knn_reach
 from gdt_pipeline.sensors import PRESETS, load_profile
 
 from ._select import map_selected
@@ -51,6 +51,8 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
                 normals = ds.facet_normals(unit=True)
             else:
                 normals = estimate_normals(ds.points, ctx.params.normal_neighbours)
+                if ctx.tile is not None:  # in a tile: the runner checks that every neighbourhood was whole
+                    ctx.neighbourhoods(ds.points, knn_reach(ds.points, ctx.params.normal_neighbours))
             cos = np.einsum("ij,ij->i", normals, beam / np.maximum(beam_range[:, None], 1e-300))
         s_range, s_lat = profile.sigmas(beam_range, cos, units)
         return ds.with_uncertainty(GaussianUncertainty(beam_covariances(pos, origin, s_range, s_lat)))

@@ -1,0 +1,306 @@
+"""Running runs of tileable stages one 3-D tile at a time (``docs/scale.md``).
+
+The chain is cut into runs: a run of consecutive stages that declare ``tiling="tile"``, or one whole-epoch stage.
+For a tile run the runner picks the halo (the sum of the stages' reaches: each stage needs the previous one's results
+that far out), cuts the slots the run reads to every tile's box plus halo, hands the tiles to the executor, and
+merges the core results back in element order (``tiling.merge``), checking that every element came from exactly one
+tile. Then each stage's ``finish`` runs once on the merged slots. Whole-epoch stages (registration, the region of
+view, calibration, fusion) see the merged slots as if the epoch had run whole.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import json
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import GdtError
+from ..plugins import ExecutorOptions, Registry, StageContext, TileBounds, TileExecutor
+from ..slots import valid
+from ..tiling import (
+    CellIndex,
+    ElementOrder,
+    crop_composite,
+    crop_rov,
+    grid_for,
+    lookup,
+    merge_change,
+    merge_correspondences,
+    merge_recent,
+    merge_scores,
+    size_for_budget,
+    take_candidates,
+    take_dataset,
+    tile_members,
+)
+from ..tiling.crop import take_change, take_scores
+from ..types import Composite, Dataset
+from .plan import StagePlan, TilingOptions
+from .stage_call import stage_rng
+from .tile_work import TileResult, TileStage, TileTask, run_tile
+
+log = logging.getLogger("gdt.tiles")
+
+MERGEABLE = frozenset({"recent", "correspondences", "scores", "change"})
+# Per-tile reports kept in a stage's provenance; beyond this only their count.
+KEPT_TILE_REPORTS = 16
+# A tile whose neighbourhoods reached past its halo runs again with the halo grown by this times the shortfall, at
+# most this many times.
+HALO_GROWTH = 1.5
+MAX_HALO_ROUNDS = 4
+
+
+def tileable(st: StagePlan) -> bool:
+    """Whether a stage may run tile by tile: it says so, and everything it provides can be merged."""
+    return st.spec.tiling == "tile" and set(st.spec.provides) <= MERGEABLE
+
+
+def chain_runs(stages: list[StagePlan], tiled: bool) -> list[list[StagePlan]]:
+    """The chain cut into runs of tileable stages and single whole-epoch stages. A stage whose reach depends on data
+    starts a new run when it reads a slot the run already changes (its reach is measured on the run's input)."""
+    runs: list[list[StagePlan]] = []
+    current: list[StagePlan] = []
+    provided: set[str] = set()
+    for st in stages:
+        if not (tiled and tileable(st)):
+            runs += [current, [st]] if current else [[st]]
+            current, provided = [], set()
+            continue
+        if current and st.spec.reach is not None and provided & set(st.spec.requires):
+            runs.append(current)
+            current, provided = [], set()
+        current.append(st)
+        provided |= set(st.spec.provides)
+    return runs + ([current] if current else [])
+
+
+@dataclass
+class TileSession:
+    """One run's tiling: the options, the executor (opened at the first tile run, closed with the run) and the tile
+    size, fixed at the first tiled epoch so that every epoch uses the same grid spacing."""
+
+    options: TilingOptions
+    registry: Registry
+    on_open: Callable[[str, TileExecutor], None] = lambda name, ex: None
+    stack: contextlib.ExitStack = field(default_factory=contextlib.ExitStack)
+    size: float | None = None
+    _executor: TileExecutor | None = None
+
+    def executor(self) -> tuple[TileExecutor, Callable[[TileTask], TileResult]]:
+        """The open executor and the function it runs per tile."""
+        spec = self.registry.executor(self.options.executor)
+        if self._executor is None:
+            opts = ExecutorOptions(workers=self.options.workers, address=self.options.address)
+            self._executor = self.stack.enter_context(spec.open(opts))
+            self.on_open(spec.name, self._executor)
+        fn = functools.partial(run_tile, registry=self.registry) if spec.in_process else run_tile
+        return self._executor, fn
+
+    def worker_threads(self) -> int | None:
+        """Compiled-kernel threads per worker, so that workers × threads fill the cores without oversubscribing."""
+        if self.registry.executor(self.options.executor).in_process:
+            return None
+        return max(1, (os.cpu_count() or 1) // max(1, self.options.workers or (os.cpu_count() or 1)))
+
+
+@dataclass
+class TileRunOutcome:
+    """Per stage of a tile run: its summed seconds over tiles and its report."""
+
+    seconds: list[float]
+    reports: list[dict[str, Any]]
+
+
+def _reaches(stages: list[StagePlan], slots: dict[str, Any]) -> list[float]:
+    """Each stage's declared reach (0 without one)."""
+    out = []
+    for st in stages:
+        reach = 0.0 if st.spec.reach is None else float(st.spec.reach(st.params, slots))
+        if not np.isfinite(reach) or reach < 0:
+            raise GdtError(f"stage {st.spec.name!r} declared a reach of {reach}; it cannot run in tiles")
+        out.append(reach)
+    return out
+
+
+@dataclass
+class _Cutter:
+    """Cuts an epoch's slots to one tile: the grid, each tile's core members and box indexes of the big sets."""
+
+    slots: dict[str, Any]
+    reads: set[str]
+    halo: float
+    size: float
+
+    def __post_init__(self) -> None:
+        recent: list[Dataset] = self.slots["recent"]
+        positions = [ds.element_positions() for ds in recent]
+        self.grid = grid_for(positions, self.size)
+        self.members = tile_members(self.grid, positions)
+        self.recent_index = [CellIndex(self.grid, p) for p in positions]
+        ref: Composite | None = self.slots.get("reference")
+        self.ref_finders = None if ref is None else [
+            CellIndex(self.grid, it.dataset.points).query if it.dataset.faces is None else None for it in ref.items]
+
+    def task(self, tile: int, stages: list[StagePlan], seed: int, threads: int | None, halo: float | None = None,
+             later_reach: tuple[float, ...] = ()) -> TileTask:
+        """The task of tile ``tile`` (with a wider ``halo`` than the run's when a first try fell short)."""
+        lo, hi = self.grid.bounds(tile)
+        halo = self.halo if halo is None else halo
+        blo, bhi = lo - halo, hi + halo
+        recent: list[Dataset] = self.slots["recent"]
+        ids = [index.query(blo, bhi) for index in self.recent_index]
+        core = [np.searchsorted(i, m) for i, m in zip(ids, self.members[tile], strict=True)]
+        cut: dict[str, Any] = {k: v for k, v in self.slots.items() if k in self.reads or k == "epoch"}
+        cut["recent"] = [take_dataset(ds, i) for ds, i in zip(recent, ids, strict=True)]
+        candidate_ids, extra = self._cut_correspondences(cut, ids)
+        keeps: list[np.ndarray] = []
+        if "reference" in self.slots:
+            ref, keeps = crop_composite(self.slots["reference"], blo, bhi, extra, self.ref_finders)
+            cut["reference"] = ref
+            if "rov" in cut:
+                cut["rov"] = crop_rov(cut["rov"], keeps, [it.key for it in ref.items])
+        for name, take in (("scores", take_scores), ("change", take_change)):
+            if name in cut:
+                cut[name] = [take(x, ids[x.query]) for x in cut[name]]
+        provides = tuple(sorted({s for st in stages for s in st.spec.provides}))
+        return TileTask(tile=tile, seed=seed, epoch=self.slots["epoch"], stages=tuple(
+            TileStage(st.spec.name, st.index, json.loads(st.params.model_dump_json())) for st in stages),
+            slots=cut, recent_ids=ids, core=core, n_elements=[ds.n_elements for ds in recent], ref_keeps=keeps,
+            provides=provides, candidate_ids=candidate_ids, threads=threads,
+            bounds=TileBounds(lo, hi, blo, bhi), later_reach=later_reach)
+
+    def _cut_correspondences(self, cut: dict[str, Any], ids: list[np.ndarray]
+                             ) -> tuple[list[np.ndarray] | None, dict[int, np.ndarray]]:
+        """Correspondences made before the tile run, cut to the tile's elements; the reference elements they name
+        are kept in the reference crop whatever the halo."""
+        if "correspondences" not in cut:
+            return None, {}
+        extra: dict[int, list[np.ndarray]] = {}
+        candidate_ids, pieces = [], []
+        for corr in cut["correspondences"]:
+            local = lookup(ids[corr.query])(corr.element)
+            keep = local >= 0
+            candidate_ids.append(np.flatnonzero(keep))
+            for item in np.unique(corr.ref_item[keep & corr.found]):
+                extra.setdefault(int(item), []).append(corr.ref_element[keep & (corr.ref_item == item)])
+            pieces.append((corr, keep))
+        # renumbered once the reference crop (box + these elements) is known: _finish_correspondences
+        cut["correspondences_pending"] = pieces
+        return candidate_ids, {i: np.unique(np.concatenate(v)) for i, v in extra.items()}
+
+
+def _finish_correspondences(task: TileTask) -> TileTask:
+    """Renumber cut-in correspondences to the tile's crop (their reference elements are in it by construction)."""
+    pending = task.slots.pop("correspondences_pending", None)
+    if pending is None:
+        return task
+    ref_maps = [lookup(keep) for keep in task.ref_keeps]
+    task.slots["correspondences"] = [
+        take_candidates(corr, keep, lookup(task.recent_ids[corr.query]), ref_maps, len(task.recent_ids[corr.query]))
+        for corr, keep in pending]
+    return task
+
+
+def _merge(slots: dict[str, Any], members: dict[int, list[np.ndarray]], results: list[TileResult],
+           provides: set[str]) -> dict[str, Any]:
+    """The tiles' core results merged into whole-epoch slots."""
+    recent: list[Dataset] = slots["recent"]
+    tiles = [r.tile for r in results]
+    orders = [ElementOrder.check(ds.name, [members[t][d] for t in tiles], ds.n_elements)
+              for d, ds in enumerate(recent)]
+    out: dict[str, Any] = {}
+    if "recent" in provides:
+        out["recent"] = [merge_recent(ds, [r.slots["recent"][d] for r in results], orders[d])
+                         for d, ds in enumerate(recent)]
+    maps: dict[int, list[np.ndarray]] = {}
+    if "correspondences" in provides:
+        merged = []
+        for d, ds in enumerate(recent):
+            corr, maps[d] = merge_correspondences([r.slots["correspondences"][d] for r in results], ds.n_elements, d)
+            merged.append(corr)
+        out["correspondences"] = merged
+    if "scores" in provides:
+        out["scores"] = [merge_scores([r.slots["scores"][d] for r in results], orders[d], maps.get(d))
+                         for d in range(len(recent))]
+    if "change" in provides:
+        out["change"] = [merge_change([r.slots["change"][d] for r in results], orders[d]) for d in range(len(recent))]
+    return out
+
+
+def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, Any], seed: int,
+              progress_task: Callable[[int], contextlib.AbstractContextManager[Callable[[], None]]]) -> TileRunOutcome:
+    """Run ``stages`` tile by tile on ``slots`` (updated in place with the merged results)."""
+    reads = {s for st in stages for s in (*st.spec.requires, *st.spec.optional)}
+    reaches = _reaches(stages, slots)
+    later = tuple(float(sum(reaches[k + 1:])) for k in range(len(stages)))
+    if session.size is None:
+        positions = [ds.element_positions() for ds in slots["recent"]]
+        session.size = session.options.tile or size_for_budget(positions, int(session.options.max_elements or 1))
+    cutter = _Cutter(slots, reads, float(sum(reaches)), session.size)
+    executor, fn = session.executor()
+    threads = session.worker_threads()
+    log.info("tiles: %d of %.4g with halo %.4g for %s", len(cutter.members), session.size, cutter.halo,
+             ", ".join(st.spec.name for st in stages))
+    halos = dict.fromkeys(cutter.members, cutter.halo)
+    results: dict[int, TileResult] = {}
+    with progress_task(len(cutter.members)) as advance:
+        todo = list(cutter.members)
+        for _ in range(MAX_HALO_ROUNDS):
+            tasks = (_finish_correspondences(cutter.task(t, stages, seed, threads, halos[t], later)) for t in todo)
+            out = executor.map(fn, tasks, lambda i: None)
+            short = [r for r in out if r.shortfall > 0]
+            for r in out:
+                if r.shortfall == 0:
+                    results[r.tile] = r
+                    advance()
+            # a stage's neighbourhoods reached past the halo: those tiles again, with room to spare
+            for r in short:
+                halos[r.tile] += HALO_GROWTH * r.shortfall + 1e-9 * session.size
+            todo = [r.tile for r in short]
+            if not todo:
+                break
+        else:
+            raise GdtError(f"tiles {todo[:5]}: neighbourhoods still reach past a halo widened {MAX_HALO_ROUNDS} times")
+    ordered = [results[t] for t in cutter.members]
+    provides = {s for st in stages for s in st.spec.provides}
+    slots.update(_merge(slots, cutter.members, ordered, provides))
+    _finish(stages, slots, seed)
+    widened = sum(1 for t in halos if halos[t] > cutter.halo)
+    return _outcome(stages, ordered, cutter.halo, session, len(cutter.members), widened)
+
+
+def _finish(stages: list[StagePlan], slots: dict[str, Any], seed: int) -> None:
+    """Each stage's ``finish`` on the merged slots (e.g. a null simulator over every pair of the epoch)."""
+    epoch = slots["epoch"]
+    for st in stages:
+        if st.spec.finish is None:
+            continue
+        rng, stage_seed = stage_rng(seed, epoch.index, st.index)
+        visible = {k: v for k, v in slots.items()
+                   if k in st.spec.requires or k in st.spec.optional or k in st.spec.provides or k == "epoch"}
+        ctx = StageContext(stage=st.spec, params=st.params, slots=visible, epoch=epoch, rng=rng, seed=stage_seed,
+                           log=logging.getLogger(f"gdt.stage.{st.spec.name}"))
+        out = dict(st.spec.finish(ctx))
+        for name, value in out.items():
+            if name not in st.spec.provides or not valid(name, value):
+                raise GdtError(f"stage {st.spec.name!r}: finish returned {name!r}, which it does not provide")
+        slots.update(out)
+
+
+def _outcome(stages: list[StagePlan], results: list[TileResult], halo: float, session: TileSession,
+             n_tiles: int, widened: int) -> TileRunOutcome:
+    seconds = [float(sum(r.seconds[k] for r in results)) for k in range(len(stages))]
+    tiling = {"tiles": n_tiles, "tile_size": session.size, "halo": halo, "tiles_with_wider_halo": widened,
+              "executor": session.options.executor, "workers": session.options.workers}
+    reports = []
+    for k in range(len(stages)):
+        per_tile = [{"tile": r.tile, "elements": r.elements, **r.reports[k]} for r in results[:KEPT_TILE_REPORTS]]
+        reports.append({"tiling": tiling, "tile_reports": per_tile})
+    return TileRunOutcome(seconds, reports)

@@ -1,0 +1,197 @@
+"""Cutting an epoch's slots down to one tile and its halo, and taking subsets of elements and candidates.
+
+A reference item keeps its points inside the halo box and its facets whose bounding box meets it, so every element
+a stage can reach from the tile's core within the halo is there; crops remember which elements they kept (sorted
+global indices), which is how results are mapped back.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from ..types import (
+    BoxUncertainty,
+    Change,
+    Composite,
+    CompositeItem,
+    Correspondences,
+    Dataset,
+    GaussianUncertainty,
+    MixtureUncertainty,
+    RegionOfView,
+    Scores,
+    Uncertainty,
+)
+
+IndexMap = Callable[[np.ndarray], np.ndarray]
+
+
+def rows_of(u: Uncertainty) -> int:
+    """Rows an uncertainty model holds (1: one model shared by every element)."""
+    if isinstance(u, GaussianUncertainty):
+        return u.cov.shape[0]
+    if isinstance(u, BoxUncertainty):
+        return u.half_widths.shape[0]
+    return u.weights.shape[0]
+
+
+def take_uncertainty(u: Uncertainty | None, rows: np.ndarray) -> Uncertainty | None:
+    """The rows ``rows`` of a model (a shared one-row model stays as it is)."""
+    return u if u is None or rows_of(u) == 1 else u.take(rows)
+
+
+def _expanded(u: Uncertainty, n: int) -> Uncertainty:
+    return u if rows_of(u) == n else u.take(np.zeros(n, dtype=np.int64))
+
+
+def _pad_mixture(u: MixtureUncertainty, k: int) -> MixtureUncertainty:
+    """The same mixtures with ``k`` components, the extra ones weightless (the placeholders point_to_point uses)."""
+    n, have = u.weights.shape
+    if have == k:
+        return u
+    weights = np.zeros((n, k))
+    weights[:, :have] = u.weights
+    means = np.zeros((n, k, 3))
+    means[:, :have] = u.means
+    covs = np.broadcast_to(np.eye(3), (n, k, 3, 3)).copy()
+    covs[:, :have] = u.covs
+    return MixtureUncertainty(weights, means, covs)
+
+
+def _same(a: Uncertainty, b: Uncertainty) -> bool:
+    """Whether two models are the same (their array fields equal)."""
+    return type(a) is type(b) and all(
+        (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
+        for x, y in ((getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a) if f.init))
+
+
+def concat_uncertainty(parts: Sequence[Uncertainty], counts: Sequence[int]) -> Uncertainty:
+    """One model over the elements of ``parts`` one after the other (``counts[i]`` elements in part i); equal shared
+    one-row models stay shared."""
+    first = parts[0]
+    if any(type(p) is not type(first) for p in parts):
+        raise ValueError(f"tiles returned different uncertainty families: {sorted({type(p).__name__ for p in parts})}")
+    if all(rows_of(p) == 1 for p in parts) and all(_same(p, first) for p in parts[1:]):
+        return first
+    full = [_expanded(p, n) for p, n in zip(parts, counts, strict=True) if n]
+    if isinstance(first, GaussianUncertainty):
+        return GaussianUncertainty(np.concatenate([p.cov for p in full]))
+    if isinstance(first, BoxUncertainty):
+        rotated = any(p.rotation is not None for p in full)
+        rot = np.concatenate([np.broadcast_to(p.rotation if p.rotation is not None else np.eye(3), (rows_of(p), 3, 3))
+                              for p in full]) if rotated else None
+        return BoxUncertainty(np.concatenate([p.half_widths for p in full]), rot)
+    k = max(p.weights.shape[1] for p in full)
+    full = [_pad_mixture(p, k) for p in full]
+    return MixtureUncertainty(np.concatenate([p.weights for p in full]), np.concatenate([p.means for p in full]),
+                              np.concatenate([p.covs for p in full]))
+
+
+def take_dataset(ds: Dataset, elements: np.ndarray) -> Dataset:
+    """The elements ``elements`` (sorted) of a dataset: its points, or its facets on the vertices they use."""
+    unc = take_uncertainty(ds.uncertainty, elements)
+    if ds.faces is None:
+        return dataclasses.replace(ds, points=ds.points[elements], uncertainty=unc)
+    faces = ds.faces[elements]
+    used, local = np.unique(faces, return_inverse=True)
+    return dataclasses.replace(ds, points=ds.points[used], faces=local.reshape(-1, 3), uncertainty=unc)
+
+
+def in_box(ds: Dataset, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Sorted indices of the elements that reach into the box: points inside it, facets whose bounding box meets it."""
+    if ds.faces is None:
+        return np.flatnonzero(np.all((ds.points >= lower) & (ds.points <= upper), axis=1))
+    tri = ds.points[ds.faces]
+    return np.flatnonzero(np.all((tri.max(axis=1) >= lower) & (tri.min(axis=1) <= upper), axis=1))
+
+
+def take_item(item: CompositeItem, elements: np.ndarray) -> CompositeItem:
+    """The elements ``elements`` of a composite item, with every per-element array."""
+    def sub(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else a[elements]
+
+    return dataclasses.replace(item, dataset=take_dataset(item.dataset, elements), state=item.state[elements],
+                               score=item.score[elements], source_epoch=item.source_epoch[elements],
+                               visible=item.visible[elements], p_value=sub(item.p_value), reason=sub(item.reason),
+                               reason_ratio=sub(item.reason_ratio), area_seen=sub(item.area_seen),
+                               area_removed=sub(item.area_removed))
+
+
+def crop_composite(composite: Composite, lower: np.ndarray, upper: np.ndarray,
+                   extra: dict[int, np.ndarray] | None = None,
+                   finders: Sequence[Callable[[np.ndarray, np.ndarray], np.ndarray] | None] | None = None
+                   ) -> tuple[Composite, list[np.ndarray]]:
+    """The composite cut to a box (plus the elements ``extra`` names per item), and per item the elements kept.
+    ``finders[i](lower, upper)``, when given, finds item i's elements in a box faster than a scan (``CellIndex``).
+    Every item stays, empty or not, so item numbers mean the same in the crop; segments are left out."""
+    keeps, items = [], []
+    for i, item in enumerate(composite.items):
+        finder = finders[i] if finders is not None else None
+        keep = finder(lower, upper) if finder is not None else in_box(item.dataset, lower, upper)
+        if extra and i in extra and len(extra[i]):
+            keep = np.union1d(keep, extra[i])
+        keeps.append(keep)
+        items.append(take_item(item, keep))
+    return Composite(items=tuple(items)), keeps
+
+
+def crop_rov(rov: RegionOfView, keeps: Sequence[np.ndarray], keys: Sequence[str]) -> RegionOfView:
+    """The region of view with its per-element judgements of the reference cut like the reference."""
+    by_key = dict(zip(keys, keeps, strict=True))
+
+    def cut(table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        return {k: v[by_key[k]] if k in by_key else v for k, v in table.items()}
+
+    return dataclasses.replace(rov, in_view=cut(rov.in_view), matched=cut(rov.matched),
+                               seen_fraction=cut(rov.seen_fraction), removed_fraction=cut(rov.removed_fraction))
+
+
+def lookup(sorted_ids: np.ndarray) -> IndexMap:
+    """Global → local index through a sorted array of kept global indices (−1 where not kept)."""
+    def local(ids: np.ndarray) -> np.ndarray:
+        pos = np.minimum(np.searchsorted(sorted_ids, ids), max(len(sorted_ids) - 1, 0))
+        hit = (sorted_ids[pos] == ids) if len(sorted_ids) else np.zeros(len(ids), bool)
+        return np.where(hit, pos, -1)
+
+    return local
+
+
+def take_candidates(corr: Correspondences, keep: np.ndarray, element_of: IndexMap,
+                    ref_element_of: Sequence[IndexMap], n_elements: int) -> Correspondences:
+    """The candidates ``keep`` (a mask) with their query and reference elements renumbered by the maps."""
+    sel = np.flatnonzero(keep)
+    item = corr.ref_item[sel]
+    ref_element = corr.ref_element[sel].copy()
+    for i in np.unique(item[item >= 0]):
+        at = item == i
+        ref_element[at] = ref_element_of[i](ref_element[at])
+    ref_unc, ref_row = None, None
+    if corr.ref_uncertainty is not None:
+        rows = corr.ref_row[sel]
+        used = np.flatnonzero(rows >= 0)
+        ref_unc = corr.ref_uncertainty.take(rows[used])
+        ref_row = np.full(len(sel), -1, dtype=np.int64)
+        ref_row[used] = np.arange(len(used))
+    return Correspondences(corr.query, item, ref_element, corr.position[sel], corr.distance[sel], corr.method,
+                           element=element_of(corr.element[sel]),
+                           query_position=None if corr.query_position is None else corr.query_position[sel],
+                           ref_uncertainty=ref_unc, n_elements=n_elements, ref_row=ref_row)
+
+
+def take_scores(s: Scores, elements: np.ndarray, match_of: IndexMap | None = None) -> Scores:
+    """The scores of the elements ``elements``, their winning candidates renumbered by ``match_of``; no simulator
+    (it cannot travel between processes; the stage's ``finish`` rebuilds one over the whole epoch)."""
+    match = None if s.match is None else s.match[elements]
+    if match is not None and match_of is not None:
+        match = np.where(match >= 0, match_of(np.maximum(match, 0)), -1)
+    return Scores(query=s.query, score=s.score[elements], measure=s.measure,
+                  p_value=None if s.p_value is None else s.p_value[elements], tolerance=s.tolerance, match=match)
+
+
+def take_change(c: Change, elements: np.ndarray) -> Change:
+    """The change of the elements ``elements``."""
+    return dataclasses.replace(c, score=c.score[elements], mask=c.mask[elements], state=c.state[elements],
+                               p_value=None if c.p_value is None else c.p_value[elements])

@@ -1,0 +1,122 @@
+"""Putting tiles' core results back together, element by element, and proving that none was lost or doubled.
+
+Each tile returns, per recent dataset, the results of its core elements only, already in global numbering; the
+merge puts them in element order. Correspondences are put in element order too (stable, tile by tile), which is the
+order an untiled run leaves them in (``runner.stage_call.element_ordered``), so candidate numbers, and each
+element's winning candidate, mean the same in both.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import GdtError
+from ..types import Change, Correspondences, Dataset, MixtureUncertainty, Scores
+from .crop import concat_uncertainty, rows_of
+
+
+@dataclass(frozen=True)
+class ElementOrder:
+    """Where each element of one dataset sits in the tiles' concatenated core results."""
+
+    position: np.ndarray  # position[e]: index of element e in the concatenation
+
+    @classmethod
+    def check(cls, name: str, core_ids: Sequence[np.ndarray], n: int) -> ElementOrder:
+        """The order of the concatenated core ids; an error unless every element is in exactly one tile's core."""
+        ids = np.concatenate(core_ids) if core_ids else np.zeros(0, np.int64)
+        counts = np.bincount(ids, minlength=n) if len(ids) else np.zeros(n, np.int64)
+        if len(counts) != n or np.any(counts != 1):
+            lost, doubled = int(np.sum(counts[:n] == 0)), int(np.sum(counts[:n] > 1))
+            raise GdtError(f"tiling of dataset {name!r}: {lost} elements in no tile's core and {doubled} in more than "
+                           f"one (of {n}); the merged result would not be the epoch's")
+        position = np.empty(n, dtype=np.int64)
+        position[ids] = np.arange(n)
+        return cls(position)
+
+
+def merge_recent(ds: Dataset, pieces: Sequence[Dataset], order: ElementOrder) -> Dataset:
+    """The dataset with the uncertainty the tiles attached to their core elements."""
+    if any(p.uncertainty is None for p in pieces) or not pieces:
+        return ds
+    unc = concat_uncertainty([p.uncertainty for p in pieces], [p.n_elements for p in pieces])
+    if rows_of(unc) != 1:
+        unc = unc.take(order.position)
+    return dataclasses.replace(ds, uncertainty=unc)
+
+
+def _concat_mixtures(pieces: Sequence[Correspondences]) -> tuple[MixtureUncertainty | None, np.ndarray | None]:
+    with_rows = [p for p in pieces if p.ref_uncertainty is not None]
+    if not with_rows:
+        return None, None
+    rows, offset = [], 0
+    for p in pieces:
+        if p.ref_uncertainty is None:
+            rows.append(np.full(len(p.ref_item), -1, dtype=np.int64))
+            continue
+        rows.append(np.where(p.ref_row >= 0, p.ref_row + offset, -1))
+        offset += p.ref_uncertainty.weights.shape[0]
+    unc = concat_uncertainty([p.ref_uncertainty for p in with_rows], [p.ref_uncertainty.weights.shape[0]
+                                                                      for p in with_rows])
+    return unc, np.concatenate(rows)
+
+
+def merge_correspondences(pieces: Sequence[Correspondences], n_elements: int, query: int
+                          ) -> tuple[Correspondences, list[np.ndarray]]:
+    """The tiles' core candidates in element order, and per tile where each of its candidates went."""
+    sizes = [len(p.ref_item) for p in pieces]
+    element = np.concatenate([p.element for p in pieces]) if pieces else np.zeros(0, np.int64)
+    order = np.argsort(element, kind="stable")
+    where = np.empty(len(order), dtype=np.int64)
+    where[order] = np.arange(len(order))
+    offsets = np.r_[0, np.cumsum(sizes)]
+    ref_unc, ref_row = _concat_mixtures(pieces)
+    has_qpos = any(p.query_position is not None for p in pieces)
+    if has_qpos and not all(p.query_position is not None for p in pieces):
+        raise GdtError("tiles disagree on whether candidates carry query positions")
+
+    def cat(name: str, shape: tuple[int, ...] = ()) -> np.ndarray:
+        parts = [getattr(p, name) for p in pieces]
+        return np.concatenate(parts)[order] if parts else np.zeros((0, *shape))
+
+    method = pieces[0].method if pieces else ""
+    merged = Correspondences(query, cat("ref_item"), cat("ref_element"), cat("position", (3,)), cat("distance"),
+                             method, element=element[order], query_position=cat("query_position", (3,))
+                             if has_qpos else None, ref_uncertainty=ref_unc, n_elements=n_elements,
+                             ref_row=None if ref_row is None else ref_row[order])
+    return merged, [where[offsets[i]:offsets[i + 1]] for i in range(len(pieces))]
+
+
+def merge_scores(pieces: Sequence[Scores], order: ElementOrder, candidate_maps: list[np.ndarray] | None) -> Scores:
+    """The tiles' core scores in element order; winning candidates renumbered through ``candidate_maps`` (per tile,
+    tile candidate → merged candidate) when the correspondences were merged too."""
+    first = pieces[0]
+    match = None
+    if first.match is not None:
+        parts = []
+        for i, p in enumerate(pieces):
+            m = p.match
+            if candidate_maps is not None:
+                m = np.where(m >= 0, candidate_maps[i][np.maximum(m, 0)], -1) if len(m) else m
+            parts.append(m)
+        match = np.concatenate(parts)[order.position]
+    p_value = None if first.p_value is None else np.concatenate([p.p_value for p in pieces])[order.position]
+    tolerances = [p.tolerance for p in pieces if p.tolerance is not None]
+    return Scores(query=first.query, score=np.concatenate([p.score for p in pieces])[order.position],
+                  measure=first.measure, p_value=p_value, tolerance=max(tolerances) if tolerances else None,
+                  match=match)
+
+
+def merge_change(pieces: Sequence[Change], order: ElementOrder) -> Change:
+    """The tiles' core change in element order (the threshold is the one every tile used)."""
+    first = pieces[0]
+
+    def cat(name: str) -> np.ndarray:
+        return np.concatenate([getattr(p, name) for p in pieces])[order.position]
+
+    return Change(query=first.query, score=cat("score"), mask=cat("mask"), state=cat("state"),
+                  p_value=None if first.p_value is None else cat("p_value"), threshold=first.threshold)

@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 
-def estimate_normals(points: np.ndarray, neighbours: int) -> np.ndarray:
-    """Unit normals of a point cloud from its k nearest neighbours (Open3D's PCA normals)."""
+def estimate_normals(points: np.ndarray, neighbours: int, origin: np.ndarray | tuple | None = None) -> np.ndarray:
+    """Unit normals of a point cloud from its k nearest neighbours (Open3D's PCA normals), computed about ``origin``
+    (default: the points' mean; pass the epoch's to get the same normals from any subset holding the neighbours)."""
     import open3d as o3d
 
-    origin = points.mean(axis=0)
+    origin = points.mean(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points - origin))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=neighbours))
     return np.asarray(pcd.normals)

@@ -200,6 +200,7 @@ def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, 
                      units=plan.units)
     digests = [run.digests[(epoch.index, i)] for i in range(len(epoch.inputs))]
     recent = [read_input(plan, run.registry, epoch, i, digests[i]) for i in range(len(epoch.inputs))]
+    info = dataclasses.replace(info, origin=_frame_origin(recent))
     slots: dict[str, Any] = {"recent": recent, "epoch": info}
     if composite is not None:
         slots["reference"] = composite
@@ -280,6 +281,15 @@ def _write_epoch(store: TwinStore, prov: EpochProvenance, slots: dict[str, Any],
     layer = store.write_epoch(prov.epoch.id, composite_to_elements(composite), prov.to_dict(),
                               None if rov is None else (rov.vertices, rov.faces), segments)
     return EpochSummary(prov.epoch.id, composite.counts(), seconds, target / "epochs" / Path(layer).name)
+
+
+def _frame_origin(recent: list[Dataset]) -> tuple[float, float, float] | None:
+    """The centre of the epoch's input data (rounded to 1 mm in metres): the origin its stages share."""
+    pts = [ds.points for ds in recent if len(ds.points)]
+    if not pts:
+        return None
+    centre = (np.min([p.min(axis=0) for p in pts], axis=0) + np.max([p.max(axis=0) for p in pts], axis=0)) / 2
+    return (float(np.round(centre[0], 3)), float(np.round(centre[1], 3)), float(np.round(centre[2], 3)))
 
 
 def _input_record(ds: Dataset, kind_hint: str | None, viewpoints: list | None) -> InputRecord:

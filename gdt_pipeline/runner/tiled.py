@@ -41,7 +41,7 @@ from ..tiling import (
     tile_members,
 )
 from ..tiling.crop import take_change, take_scores
-from ..types import Composite, Dataset
+from ..types import Composite, CompositeItem, Dataset
 from .plan import StagePlan, TilingOptions
 from .stage_call import stage_rng
 from .tile_work import TileResult, TileStage, TileTask, run_tile
@@ -83,14 +83,14 @@ def chain_runs(stages: list[StagePlan], tiled: bool) -> list[list[StagePlan]]:
 
 @dataclass
 class TileSession:
-    """One run's tiling: the options, the executor (opened at the first tile run, closed with the run) and the tile
-    size, fixed at the first tiled epoch so that every epoch uses the same grid spacing."""
+    """One run's tiling: the options, the executor (opened at the first tile run, closed with the run) and each
+    epoch's tile size (fixed at its first tile run, so that all its runs share one grid)."""
 
     options: TilingOptions
     registry: Registry
     on_open: Callable[[str, TileExecutor], None] = lambda name, ex: None
     stack: contextlib.ExitStack = field(default_factory=contextlib.ExitStack)
-    size: float | None = None
+    sizes: dict[str, float] = field(default_factory=dict)
     _executor: TileExecutor | None = None
 
     def executor(self) -> tuple[TileExecutor, Callable[[TileTask], TileResult]]:
@@ -145,8 +145,12 @@ class _Cutter:
         self.members = tile_members(self.grid, positions)
         self.recent_index = [CellIndex(self.grid, p) for p in positions]
         ref: Composite | None = self.slots.get("reference")
+        # Meshes stay whole in every tile: where CAD surfaces touch (a part standing on the floor), Open3D resolves a
+        # tie between them by its BVH's traversal, which depends on the facets it holds; a tile holding other facets
+        # than the epoch would pick the other surface. CAD is small next to scans; point items are cut.
         self.ref_finders = None if ref is None else [
-            CellIndex(self.grid, it.dataset.points).query if it.dataset.faces is None else None for it in ref.items]
+            CellIndex(self.grid, it.dataset.points).query if it.dataset.faces is None else _everything(it)
+            for it in ref.items]
 
     def task(self, tile: int, stages: list[StagePlan], seed: int, threads: int | None, halo: float | None = None,
              later_reach: tuple[float, ...] = ()) -> TileTask:
@@ -196,6 +200,11 @@ class _Cutter:
         return candidate_ids, {i: np.unique(np.concatenate(v)) for i, v in extra.items()}
 
 
+def _everything(item: CompositeItem) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    n = item.dataset.n_elements
+    return lambda lower, upper: np.arange(n)
+
+
 def _finish_correspondences(task: TileTask) -> TileTask:
     """Renumber cut-in correspondences to the tile's crop (their reference elements are in it by construction)."""
     pending = task.slots.pop("correspondences_pending", None)
@@ -240,13 +249,15 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
     reads = {s for st in stages for s in (*st.spec.requires, *st.spec.optional)}
     reaches = _reaches(stages, slots)
     later = tuple(float(sum(reaches[k + 1:])) for k in range(len(stages)))
-    if session.size is None:
+    epoch_id = slots["epoch"].id
+    if epoch_id not in session.sizes:  # one size per epoch: its data decide it when a budget is given
         positions = [ds.element_positions() for ds in slots["recent"]]
-        session.size = session.options.tile or size_for_budget(positions, int(session.options.max_elements or 1))
-    cutter = _Cutter(slots, reads, float(sum(reaches)), session.size)
+        session.sizes[epoch_id] = session.options.tile or size_for_budget(
+            positions, int(session.options.max_elements or 1))
+    cutter = _Cutter(slots, reads, float(sum(reaches)), session.sizes[epoch_id])
     executor, fn = session.executor()
     threads = session.worker_threads()
-    log.info("tiles: %d of %.4g with halo %.4g for %s", len(cutter.members), session.size, cutter.halo,
+    log.info("tiles: %d of %.4g with halo %.4g for %s", len(cutter.members), cutter.size, cutter.halo,
              ", ".join(st.spec.name for st in stages))
     halos = dict.fromkeys(cutter.members, cutter.halo)
     results: dict[int, TileResult] = {}
@@ -262,7 +273,7 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
                     advance()
             # a stage's neighbourhoods reached past the halo: those tiles again, with room to spare
             for r in short:
-                halos[r.tile] += HALO_GROWTH * r.shortfall + 1e-9 * session.size
+                halos[r.tile] += HALO_GROWTH * r.shortfall + 1e-9 * cutter.size
             todo = [r.tile for r in short]
             if not todo:
                 break
@@ -273,7 +284,7 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
     slots.update(_merge(slots, cutter.members, ordered, provides))
     _finish(stages, slots, seed)
     widened = sum(1 for t in halos if halos[t] > cutter.halo)
-    return _outcome(stages, ordered, cutter.halo, session, len(cutter.members), widened)
+    return _outcome(stages, ordered, cutter, session, widened)
 
 
 def _finish(stages: list[StagePlan], slots: dict[str, Any], seed: int) -> None:
@@ -294,10 +305,11 @@ def _finish(stages: list[StagePlan], slots: dict[str, Any], seed: int) -> None:
         slots.update(out)
 
 
-def _outcome(stages: list[StagePlan], results: list[TileResult], halo: float, session: TileSession,
-             n_tiles: int, widened: int) -> TileRunOutcome:
+def _outcome(stages: list[StagePlan], results: list[TileResult], cutter: _Cutter, session: TileSession,
+             widened: int) -> TileRunOutcome:
     seconds = [float(sum(r.seconds[k] for r in results)) for k in range(len(stages))]
-    tiling = {"tiles": n_tiles, "tile_size": session.size, "halo": halo, "tiles_with_wider_halo": widened,
+    tiling = {"tiles": len(cutter.members), "tile_size": cutter.size, "halo": cutter.halo,
+              "tiles_with_wider_halo": widened,
               "executor": session.options.executor, "workers": session.options.workers}
     reports = []
     for k in range(len(stages)):

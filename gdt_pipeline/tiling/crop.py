@@ -44,7 +44,16 @@ def take_uncertainty(u: Uncertainty | None, rows: np.ndarray) -> Uncertainty | N
 
 
 def _expanded(u: Uncertainty, n: int) -> Uncertainty:
-    return u if rows_of(u) == n else u.take(np.zeros(n, dtype=np.int64))
+    """A shared one-row model repeated for ``n`` elements (``take`` keeps a shared model shared)."""
+    if rows_of(u) == n:
+        return u
+    if isinstance(u, GaussianUncertainty):
+        return GaussianUncertainty(np.repeat(u.cov, n, axis=0))
+    if isinstance(u, BoxUncertainty):
+        return BoxUncertainty(np.repeat(u.half_widths, n, axis=0),
+                              None if u.rotation is None else np.repeat(u.rotation, n, axis=0))
+    return MixtureUncertainty(np.repeat(u.weights, n, axis=0), np.repeat(u.means, n, axis=0),
+                              np.repeat(u.covs, n, axis=0))
 
 
 def _pad_mixture(u: MixtureUncertainty, k: int) -> MixtureUncertainty:
@@ -134,7 +143,7 @@ def crop_composite(composite: Composite, lower: np.ndarray, upper: np.ndarray,
         if extra and i in extra and len(extra[i]):
             keep = np.union1d(keep, extra[i])
         keeps.append(keep)
-        items.append(take_item(item, keep))
+        items.append(item if len(keep) == item.dataset.n_elements else take_item(item, keep))
     return Composite(items=tuple(items)), keeps
 
 
@@ -186,7 +195,9 @@ def take_scores(s: Scores, elements: np.ndarray, match_of: IndexMap | None = Non
     (it cannot travel between processes; the stage's ``finish`` rebuilds one over the whole epoch)."""
     match = None if s.match is None else s.match[elements]
     if match is not None and match_of is not None:
-        match = np.where(match >= 0, match_of(np.maximum(match, 0)), -1)
+        won = match >= 0
+        match = np.full(len(match), -1, dtype=np.int64)
+        match[won] = match_of(s.match[elements][won])
     return Scores(query=s.query, score=s.score[elements], measure=s.measure,
                   p_value=None if s.p_value is None else s.p_value[elements], tolerance=s.tolerance, match=match)
 

@@ -101,7 +101,9 @@ def merge_scores(pieces: Sequence[Scores], order: ElementOrder, candidate_maps: 
         for i, p in enumerate(pieces):
             m = p.match
             if candidate_maps is not None:
-                m = np.where(m >= 0, candidate_maps[i][np.maximum(m, 0)], -1) if len(m) else m
+                won = m >= 0
+                m = np.full(len(m), -1, dtype=np.int64)
+                m[won] = candidate_maps[i][p.match[won]]
             parts.append(m)
         match = np.concatenate(parts)[order.position]
     p_value = None if first.p_value is None else np.concatenate([p.p_value for p in pieces])[order.position]

@@ -122,3 +122,6 @@ class EpochInfo:
     seed: int
     workflow_dir: Path
     units: str = "m"
+    # a point near the epoch's data, the same for the whole epoch and every tile of it: the origin stages subtract
+    # before sums that round (normals from neighbourhoods), so that a tile computes bit for bit what the epoch does
+    origin: tuple[float, float, float] | None = None

@@ -50,7 +50,7 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
             if ds.faces is not None:
                 normals = ds.facet_normals(unit=True)
             else:
-                normals = estimate_normals(ds.points, ctx.params.normal_neighbours)
+                normals = estimate_normals(ds.points, ctx.params.normal_neighbours, ctx.epoch.origin)
                 if ctx.tile is not None:  # in a tile: the runner checks that every neighbourhood was whole
                     ctx.neighbourhoods(ds.points, knn_reach(ds.points, ctx.params.normal_neighbours))
             cos = np.einsum("ij,ij->i", normals, beam / np.maximum(beam_range[:, None], 1e-300))

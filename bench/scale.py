@@ -1,0 +1,152 @@
+"""Scale: the default chain on 1 M, 10 M and 50 M simulated points, whole and tiled on each executor (issue 21).
+
+The scene is the speed benchmark's (``speed_scene``: the counter CAD part with a block added, four structured-light
+stations). Per size and way of running, ``gdt run`` in a child process, after one untimed warm-up run that compiles
+the kernels; printed: wall seconds, points/s, the peak of the summed RSS of the whole process tree (the run, its
+pool or Dask workers and scheduler; sampled every 0.2 s), bytes per point, the tiles and the seconds per stage.
+
+    .venv/bin/python bench/scale.py [--sizes 1000000,10000000,50000000] [--ways whole,serial,processes,dask]
+        [--tile-elements 1000000] [--workers 2] [--repeats 1]
+
+A way that fails (out of memory) is printed as such with the peak it reached, and the next one runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from speed_scene import COUNTER, build
+
+ROOT = Path(__file__).resolve().parents[1]
+GDT = [sys.executable, "-m", "gdt_pipeline.cli"]
+SAMPLE_SECONDS = 0.2
+
+
+def tree_rss(proc: psutil.Process) -> int:
+    """Summed RSS in bytes of a process and all its descendants (those that vanish mid-count are skipped)."""
+    total = 0
+    for p in [proc, *proc.children(recursive=True)]:
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            continue
+    return total
+
+
+def run_metered(cmd: list[str], cwd: Path) -> dict:
+    """Wall seconds, peak process-tree RSS (MB), exit code and stderr tail of one child run."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    peak = [0]
+    watched = psutil.Process(proc.pid)
+
+    def sample() -> None:
+        while proc.poll() is None:
+            try:
+                peak[0] = max(peak[0], tree_rss(watched))
+            except psutil.Error:
+                break
+            time.sleep(SAMPLE_SECONDS)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    err = proc.stderr.read()
+    proc.wait()
+    sampler.join()
+    return {"wall": time.perf_counter() - t0, "rss_mb": peak[0] / 2**20, "code": proc.returncode,
+            "error": err[-600:]}
+
+
+def way_args(way: str, tile_elements: int, workers: int) -> list[str]:
+    """The ``gdt run`` options of one way of running."""
+    if way == "whole":
+        return []
+    return ["--tile-elements", str(tile_elements), "--executor", way, "--workers", str(workers)]
+
+
+def stage_seconds(log: Path) -> dict[str, float]:
+    """Seconds per stage of epoch E1 from a run's JSON-lines log."""
+    out: dict[str, float] = {}
+    for line in log.read_text().splitlines() if log.exists() else []:
+        event = json.loads(line)
+        if event.get("message") == "stage done" and event.get("epoch") == "E1":
+            out[event["stage"]] = out.get(event["stage"], 0.0) + event["seconds"]
+    return out
+
+
+def tiles_of(twin: Path) -> int | None:
+    """How many tiles the E1 correspondence stage ran in (None for a whole run)."""
+    from twin_store import TwinStore
+
+    try:
+        stages = TwinStore.open(twin).provenance("E1")["stages"]
+    except Exception:
+        return None
+    tiled = [s["report"].get("tiling") for s in stages if isinstance(s.get("report"), dict)]
+    return next((t["tiles"] for t in tiled if t), None)
+
+
+def run_way(folder: Path, way: str, args: argparse.Namespace) -> dict:
+    """One run of the scene's workflow one way; its figures."""
+    log = folder / f"run-{way}.jsonl"
+    log.unlink(missing_ok=True)
+    cmd = [*GDT, "run", "workflow.yaml", "--overwrite", "--quiet", "--twin", f"twin-{way}", "--log-file", str(log),
+           *way_args(way, args.tile_elements, args.workers)]
+    res = run_metered(cmd, folder)
+    res["stages"] = stage_seconds(log)
+    res["tiles"] = tiles_of(folder / f"twin-{way}") if res["code"] == 0 else None
+    return res
+
+
+def print_way(n: int, way: str, runs: list[dict]) -> None:
+    """One line per way: medians of its runs."""
+    ok = [r for r in runs if r["code"] == 0]
+    if not ok:
+        r = runs[0]
+        print(f"  {way:<10} FAILED (exit {r['code']}) after {r['wall']:.0f} s at peak {r['rss_mb']:.0f} MB: "
+              f"{r['error'].strip().splitlines()[-1] if r['error'].strip() else ''}", flush=True)
+        return
+    wall = float(np.median([r["wall"] for r in ok]))
+    rss = float(np.median([r["rss_mb"] for r in ok]))
+    stages = ", ".join(f"{k} {np.median([r['stages'].get(k, 0.0) for r in ok]):.1f}" for k in ok[0]["stages"])
+    print(f"  {way:<10} {wall:8.1f} s {n / wall:>10,.0f} points/s  peak {rss:7.0f} MB  {rss * 2**20 / n:6.0f} B/point"
+          f"  tiles {ok[0]['tiles'] or '-'}   [{stages}]", flush=True)
+
+
+def main() -> None:
+    """Build each size's scene and run it every way asked, printing as it goes."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sizes", default="1000000,10000000,50000000")
+    ap.add_argument("--ways", default="whole,serial,processes,dask")
+    ap.add_argument("--tile-elements", type=int, default=1_000_000)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench" / "scale")
+    ap.add_argument("--cad", type=Path, default=COUNTER)
+    args = ap.parse_args()
+    warmed = False
+    for size in (int(s) for s in args.sizes.split(",")):
+        t0 = time.perf_counter()
+        scene = build(args.out / f"{size}", size, counter=args.cad)
+        folder = scene["workflow"].parent
+        print(f"\n== {scene['points']:,} points ({scene['source']}; scene built in {time.perf_counter() - t0:.0f} s),"
+              f" tiles of at most {args.tile_elements:,} elements, {args.workers} workers ==", flush=True)
+        if not warmed:
+            run_way(folder, "serial", args)  # compiles the kernels (cached); not counted
+            warmed = True
+        for way in args.ways.split(","):
+            print_way(scene["points"], way, [run_way(folder, way, args) for _ in range(args.repeats)])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,180 @@
+"""3-D tiles: the grid puts every element in exactly one core, box queries find what a scan would, crops and merges
+keep every element and candidate, and the runner's chain runs are cut where they must be."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from gdt_pipeline import (
+    BoxUncertainty,
+    Correspondences,
+    Dataset,
+    GaussianUncertainty,
+    GdtError,
+    MixtureUncertainty,
+)
+from gdt_pipeline.plugins import TileBounds
+from gdt_pipeline.runner.plan import StagePlan
+from gdt_pipeline.runner.stage_call import element_ordered
+from gdt_pipeline.runner.tiled import chain_runs
+from gdt_pipeline.tiling import (
+    CellIndex,
+    ElementOrder,
+    concat_uncertainty,
+    grid_for,
+    merge_correspondences,
+    size_for_budget,
+    take_candidates,
+    tile_members,
+)
+
+
+def _cloud(rng: np.random.Generator, n: int) -> np.ndarray:
+    pts = rng.uniform(-1.0, 2.0, (n, 3))
+    pts[:50] = np.round(pts[:50] / 0.25) * 0.25  # some exactly on tile faces
+    return pts
+
+
+def test_every_element_is_in_exactly_one_core() -> None:
+    rng = np.random.default_rng(1)
+    clouds = [_cloud(rng, 5000), _cloud(rng, 300)]
+    grid = grid_for(clouds, 0.25)
+    members = tile_members(grid, clouds)
+    for d, cloud in enumerate(clouds):
+        ids = np.concatenate([m[d] for m in members.values()])
+        assert np.array_equal(np.sort(ids), np.arange(len(cloud)))
+        for tile, m in members.items():
+            lo, hi = grid.bounds(tile)
+            inside = cloud[m[d]]
+            # lower faces closed, upper faces open, except the grid's last tile along each axis
+            assert np.all(inside >= lo - 1e-12) and np.all(inside <= hi + 1e-12)
+
+
+def test_cell_index_finds_what_a_scan_finds() -> None:
+    rng = np.random.default_rng(2)
+    cloud = _cloud(rng, 4000)
+    grid = grid_for([cloud], 0.4)
+    index = CellIndex(grid, cloud)
+    for _ in range(20):
+        lo = rng.uniform(-1.5, 2.0, 3)
+        hi = lo + rng.uniform(0.0, 1.5, 3)
+        brute = np.flatnonzero(np.all((cloud >= lo) & (cloud <= hi), axis=1))
+        assert np.array_equal(index.query(lo, hi), brute)
+
+
+def test_budget_size_holds_the_budget() -> None:
+    rng = np.random.default_rng(3)
+    cloud = _cloud(rng, 20000)
+    size = size_for_budget([cloud], 2000)
+    grid = grid_for([cloud], size)
+    assert np.bincount(grid.cell(cloud)).max() <= 2000
+    assert np.bincount(grid_for([cloud], 2 * size).cell(cloud)).max() > 2000  # the largest size that fits
+
+
+def test_a_lost_or_doubled_element_is_an_error() -> None:
+    ok = ElementOrder.check("scan", [np.array([0, 2]), np.array([1, 3])], 4)
+    assert np.array_equal(ok.position, [0, 2, 1, 3])
+    with pytest.raises(GdtError, match="1 elements in no tile's core and 0 in more than one"):
+        ElementOrder.check("scan", [np.array([0, 2]), np.array([1])], 4)
+    with pytest.raises(GdtError, match="0 elements in no tile's core and 1 in more than one"):
+        ElementOrder.check("scan", [np.array([0, 1, 2]), np.array([2, 3])], 4)
+
+
+def _cov(rng: np.random.Generator, n: int) -> np.ndarray:
+    a = rng.normal(size=(n, 3, 3))
+    return a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(3)
+
+
+def test_uncertainty_parts_concatenate_row_for_row() -> None:
+    rng = np.random.default_rng(4)
+    g = [GaussianUncertainty(_cov(rng, 3)), GaussianUncertainty(_cov(rng, 2))]
+    assert np.array_equal(concat_uncertainty(g, [3, 2]).cov, np.concatenate([g[0].cov, g[1].cov]))
+    shared = GaussianUncertainty.isotropic(0.01)
+    assert concat_uncertainty([shared, GaussianUncertainty.isotropic(0.01)], [4, 5]) is shared
+    mixed = concat_uncertainty([shared, g[1]], [2, 2])
+    assert np.array_equal(mixed.cov, np.concatenate([np.repeat(shared.cov, 2, axis=0), g[1].cov]))
+    boxes = concat_uncertainty([BoxUncertainty(np.full((1, 3), 0.002)), BoxUncertainty(np.full((2, 3), 0.001))], [2, 2])
+    assert np.array_equal(boxes.half_widths[:, 0], [0.002, 0.002, 0.001, 0.001]) and boxes.rotation is None
+
+
+def test_mixtures_of_different_sizes_pad_with_weightless_components() -> None:
+    one = MixtureUncertainty(np.ones((2, 1)), np.zeros((2, 1, 3)), np.broadcast_to(np.eye(3), (2, 1, 3, 3)))
+    two = MixtureUncertainty(np.full((1, 2), 0.5), np.ones((1, 2, 3)), np.broadcast_to(2 * np.eye(3), (1, 2, 3, 3)))
+    both = concat_uncertainty([one, two], [2, 1])
+    assert both.weights.shape == (3, 2)
+    assert np.array_equal(both.weights, [[1, 0], [1, 0], [0.5, 0.5]])
+    # the padding changes no mixture: same covariance, row by row
+    assert np.allclose(both.covariance(3), np.concatenate([one.covariance(2), two.covariance(1)]))
+
+
+def test_candidates_merge_into_element_order_with_their_mixture_rows() -> None:
+    rng = np.random.default_rng(5)
+    n = 40
+    element = np.sort(rng.integers(0, n, 90))
+    mix = MixtureUncertainty(np.ones((90, 1)), np.zeros((90, 1, 3)), np.broadcast_to(np.eye(3), (90, 1, 3, 3)) *
+                             rng.uniform(1, 2, (90, 1, 1, 1)))
+    whole = Correspondences(0, rng.integers(0, 2, 90), rng.integers(0, 500, 90), rng.normal(size=(90, 3)),
+                            rng.uniform(size=90), "test", element=element, n_elements=n, ref_uncertainty=mix,
+                            ref_row=np.where(rng.uniform(size=90) < 0.7, np.arange(90), -1))
+    # two "tiles": even and odd elements, each keeping its own candidates, numbered as the whole
+    same = [lambda e: e, lambda e: e]
+    parts = [take_candidates(whole, whole.element % 2 == k, lambda e: e, same, n) for k in (0, 1)]
+    merged, where = merge_correspondences(parts, n, 0)
+    assert np.array_equal(merged.element, whole.element)
+    assert np.array_equal(merged.ref_element, whole.ref_element)
+    assert np.array_equal(merged.position, whole.position)
+    used = merged.ref_row >= 0
+    assert np.array_equal(used, whole.ref_row >= 0)
+    assert np.array_equal(merged.ref_uncertainty.covs[merged.ref_row[used]], mix.covs[whole.ref_row[used]])
+    for k, part in enumerate(parts):  # each tile's candidate lands where the whole has it
+        assert np.array_equal(np.flatnonzero(whole.element % 2 == k), np.sort(where[k]))
+        assert np.array_equal(merged.element[where[k]], part.element)
+
+
+def test_correspondences_leave_a_stage_in_stable_element_order() -> None:
+    corr = Correspondences(0, np.zeros(5, np.int64), np.arange(5), np.zeros((5, 3)), np.arange(5.0), "t",
+                           element=np.array([2, 0, 2, 1, 0]), n_elements=3)
+    ordered = element_ordered(corr)
+    assert np.array_equal(ordered.element, [0, 0, 1, 2, 2])
+    assert np.array_equal(ordered.ref_element, [1, 4, 3, 0, 2])  # each element's candidates in their given order
+
+
+def test_shortfall_measures_the_missing_halo() -> None:
+    bounds = TileBounds(np.zeros(3), np.ones(3), np.full(3, -0.1), np.full(3, 1.1))
+    pos = np.array([[0.5, 0.5, 0.5], [0.95, 0.5, 0.5], [1.05, 0.5, 0.5]])  # the last is halo: not checked
+    assert bounds.shortfall(pos, 0.1) == 0.0
+    assert bounds.shortfall(pos, 0.3) == pytest.approx(0.15)
+
+
+def _plan(registry: object, names: list[str]) -> list[StagePlan]:
+    return [StagePlan(i, registry.get(n), registry.get(n).params.model_validate(
+        {"tau": 1.0} if n == "fixed" else {"profile": "structured_light"} if n == "sensor_model" else {}))
+        for i, n in enumerate(names)]
+
+
+def test_chain_runs_keep_whole_epoch_stages_apart(registry: object) -> None:
+    chain = _plan(registry, ["sensor_model", "sensor_frustum", "auto", "bhattacharyya", "fixed",
+                             "calibrated_threshold", "most_reliable"])
+    runs = [[st.spec.name for st in run] for run in chain_runs(chain, tiled=True)]
+    assert runs == [["sensor_model"], ["sensor_frustum"], ["auto", "bhattacharyya", "fixed"],
+                    ["calibrated_threshold"], ["most_reliable"]]
+    # a stage whose reach depends on data starts a new run after a stage that changes that data
+    runs = [[st.spec.name for st in run] for run in chain_runs(_plan(registry, ["sensor_model", "auto"]), True)]
+    assert runs == [["sensor_model"], ["auto"]]
+    assert len(chain_runs(chain, tiled=False)) == len(chain)
+
+
+def test_take_dataset_keeps_a_mesh_valid() -> None:
+    from gdt_pipeline.tiling import take_dataset
+
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
+    ds = Dataset("m", "as-designed", verts, faces=np.array([[0, 1, 2], [1, 3, 2]]),
+                 uncertainty=BoxUncertainty(np.array([[0.1, 0.1, 0.1], [0.2, 0.2, 0.2]])))
+    cut = take_dataset(ds, np.array([1]))
+    assert cut.n_elements == 1 and len(cut.points) == 3
+    assert np.array_equal(cut.points[cut.faces[0]], verts[[1, 3, 2]])
+    assert np.array_equal(cut.uncertainty.half_widths, [[0.2, 0.2, 0.2]])
+    assert dataclasses.replace(cut).name == "m"

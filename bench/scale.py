@@ -6,7 +6,7 @@ the kernels; printed: wall seconds, points/s, the peak of the summed RSS of the 
 pool or Dask workers and scheduler; sampled every 0.2 s), bytes per point, the tiles and the seconds per stage.
 
     .venv/bin/python bench/scale.py [--sizes 1000000,10000000,50000000] [--ways whole,serial,processes,dask]
-        [--tile-elements 1000000] [--workers 2] [--repeats 1]
+        [--tile-elements 500000] [--workers 2] [--repeats 1]
 
 A way that fails (out of memory) is printed as such with the peak it reached, and the next one runs.
 """
@@ -123,12 +123,33 @@ def print_way(n: int, way: str, runs: list[dict]) -> None:
           f"  tiles {ok[0]['tiles'] or '-'}   [{stages}]", flush=True)
 
 
+def compare(folder: Path, way: str) -> str:
+    """Element by element, the twin of ``way`` against the whole run's: states, visibility, scores."""
+    from twin_store import TwinStore
+
+    a, b = TwinStore.open(folder / "twin-whole"), TwinStore.open(folder / f"twin-{way}")
+    states = visible = elements = 0
+    worst = 0.0
+    for epoch in a.epochs():
+        theirs = {es.key: es for es in b.read_epoch(epoch)}
+        for x in a.read_epoch(epoch):
+            y = theirs[x.key]
+            elements += len(x.state)
+            states += int(np.sum(x.state != y.state))
+            visible += int(np.sum(x.visible != y.visible))
+            both = np.isfinite(x.score) & np.isfinite(y.score)
+            if both.any():
+                worst = max(worst, float(np.max(np.abs(x.score[both] - y.score[both]))))
+    return (f"vs whole: {states} of {elements:,} element states differ, {visible} visibilities, largest score "
+            f"difference {worst:.3g}")
+
+
 def main() -> None:
     """Build each size's scene and run it every way asked, printing as it goes."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", default="1000000,10000000,50000000")
     ap.add_argument("--ways", default="whole,serial,processes,dask")
-    ap.add_argument("--tile-elements", type=int, default=1_000_000)
+    ap.add_argument("--tile-elements", type=int, default=500_000)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench" / "scale")
@@ -145,7 +166,10 @@ def main() -> None:
             run_way(folder, "serial", args)  # compiles the kernels (cached); not counted
             warmed = True
         for way in args.ways.split(","):
-            print_way(scene["points"], way, [run_way(folder, way, args) for _ in range(args.repeats)])
+            runs = [run_way(folder, way, args) for _ in range(args.repeats)]
+            print_way(scene["points"], way, runs)
+            if way != "whole" and runs[0]["code"] == 0 and (folder / "twin-whole").exists():
+                print(f"  {'':<10} {compare(folder, way)}", flush=True)
 
 
 if __name__ == "__main__":

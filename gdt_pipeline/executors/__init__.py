@@ -31,19 +31,19 @@ class SerialExecutor:
 
     dashboard: str | None = None
 
-    def map(self, fn: Callable[[Any], Any], tasks: Iterable[Any], done: Callable[[int], None] | None = None
+    def map(self, fn: Callable[[Any], Any], tasks: Iterable[Any], done: Callable[[int, Any], None] | None = None
             ) -> list[Any]:
         """``fn(task)`` for each task in turn."""
         out = []
         for i, task in enumerate(tasks):
             out.append(fn(task))
             if done is not None:
-                done(i)
+                done(i, out[-1])
         return out
 
 
 def _bounded(submit: Callable[[Any], Any], wait_some: Callable[[set], set], tasks: Iterable[Any], limit: int,
-             done: Callable[[int], None] | None) -> list[Any]:
+             done: Callable[[int, Any], None] | None) -> list[Any]:
     """Submit tasks keeping at most ``limit`` in flight; results in task order."""
     futures: dict[Any, int] = {}
     results: dict[int, Any] = {}
@@ -60,11 +60,11 @@ def _bounded(submit: Callable[[Any], Any], wait_some: Callable[[set], set], task
 
 
 def _collect(finished: set, pending: set, futures: dict[Any, int], results: dict[int, Any],
-             done: Callable[[int], None] | None) -> set:
+             done: Callable[[int, Any], None] | None) -> set:
     for fut in finished:
         results[futures[fut]] = fut.result()  # a worker's exception surfaces here, with its own message
         if done is not None:
-            done(futures[fut])
+            done(futures[fut], results[futures[fut]])
     return pending - finished
 
 
@@ -76,7 +76,7 @@ class PoolExecutor:
     def __init__(self, pool: ProcessPoolExecutor, workers: int) -> None:
         self.pool, self.workers = pool, workers
 
-    def map(self, fn: Callable[[Any], Any], tasks: Iterable[Any], done: Callable[[int], None] | None = None
+    def map(self, fn: Callable[[Any], Any], tasks: Iterable[Any], done: Callable[[int, Any], None] | None = None
             ) -> list[Any]:
         """``fn(task)`` on the pool's workers."""
         def wait_some(pending: set[Future]) -> set[Future]:
@@ -93,7 +93,7 @@ class DaskExecutor:
         self.client, self.workers = client, workers
         self.dashboard = getattr(client, "dashboard_link", None)
 
-    def map(self, fn: Callable[[Any], Any], tasks: Iterable[Any], done: Callable[[int], None] | None = None
+    def map(self, fn: Callable[[Any], Any], tasks: Iterable[Any], done: Callable[[int, Any], None] | None = None
             ) -> list[Any]:
         """``fn(task)`` on the cluster's workers; each task is scattered first (large arrays, not graph payload)."""
         from distributed import wait as dask_wait

@@ -15,7 +15,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import re
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol, get_args
@@ -211,9 +211,10 @@ class TileExecutor(Protocol):
 
     dashboard: str | None
 
-    def map(self, fn: Callable[[Any], Any], tasks: Sequence[Any],
-            done: Callable[[int], None] | None = None) -> list[Any]:
-        """``fn(task)`` for every task; ``done(i)`` as each one finishes (any order); results in task order."""
+    def map(self, fn: Callable[[Any], Any], tasks: Iterable[Any],
+            done: Callable[[int, Any], None] | None = None) -> list[Any]:
+        """``fn(task)`` for every task (an iterable, pulled as workers free up); ``done(i, result)`` as each one
+        finishes (any order); the results in task order."""
 
 
 @dataclass(frozen=True)

@@ -65,6 +65,7 @@ class TileResult:
     seconds: list[float] = field(default_factory=list)
     elements: int = 0
     shortfall: float = 0.0  # how much wider the halo must be (a stage's neighbourhoods reached past it)
+    halo: float = 0.0  # the halo the tile ran with (set by the runner)
 
 
 def _registry() -> Registry:

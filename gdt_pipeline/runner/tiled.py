@@ -259,32 +259,55 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
     threads = session.worker_threads()
     log.info("tiles: %d of %.4g with halo %.4g for %s", len(cutter.members), cutter.size, cutter.halo,
              ", ".join(st.spec.name for st in stages))
-    halos = dict.fromkeys(cutter.members, cutter.halo)
-    results: dict[int, TileResult] = {}
     with progress_task(len(cutter.members)) as advance:
-        todo = list(cutter.members)
-        for _ in range(MAX_HALO_ROUNDS):
-            tasks = (_finish_correspondences(cutter.task(t, stages, seed, threads, halos[t], later)) for t in todo)
-            out = executor.map(fn, tasks, lambda i: None)
-            short = [r for r in out if r.shortfall > 0]
-            for r in out:
-                if r.shortfall == 0:
-                    results[r.tile] = r
-                    advance()
-            # a stage's neighbourhoods reached past the halo: those tiles again, with room to spare
-            for r in short:
-                halos[r.tile] += HALO_GROWTH * r.shortfall + 1e-9 * cutter.size
-            todo = [r.tile for r in short]
-            if not todo:
-                break
-        else:
-            raise GdtError(f"tiles {todo[:5]}: neighbourhoods still reach past a halo widened {MAX_HALO_ROUNDS} times")
+        results = _run_rounds(cutter, list(cutter.members), executor, fn, stages, seed, threads, later, advance)
     ordered = [results[t] for t in cutter.members]
     provides = {s for st in stages for s in st.spec.provides}
     slots.update(_merge(slots, cutter.members, ordered, provides))
     _finish(stages, slots, seed)
-    widened = sum(1 for t in halos if halos[t] > cutter.halo)
+    widened = sum(1 for r in ordered if r.halo > cutter.halo)
     return _outcome(stages, ordered, cutter, session, widened)
+
+
+def _run_rounds(cutter: _Cutter, tiles: list[int], executor: TileExecutor, fn: Callable[[TileTask], TileResult],
+                stages: list[StagePlan], seed: int, threads: int | None, later: tuple[float, ...],
+                advance: Callable[[], None]) -> dict[int, TileResult]:
+    """Every tile's result, with halos widened where a stage's neighbourhoods reached past them.
+
+    The first tile runs alone: what it falls short by widens every other tile's halo before they start, so a stage
+    with k-nearest neighbourhoods (which declares no reach) costs one extra tile, not a second pass over all."""
+    halos = dict.fromkeys(tiles, cutter.halo)
+    results: dict[int, TileResult] = {}
+
+    def run(todo: list[int]) -> list[TileResult]:
+        tasks = (_finish_correspondences(cutter.task(t, stages, seed, threads, halos[t], later)) for t in todo)
+
+        def done(i: int, result: TileResult) -> None:
+            if result.shortfall == 0:
+                advance()
+
+        out = executor.map(fn, tasks, done)
+        for r in out:
+            r.halo = halos[r.tile]
+            if r.shortfall == 0:
+                results[r.tile] = r
+        return [r for r in out if r.shortfall > 0]
+
+    short = run(tiles[:1])
+    if short:
+        extra = HALO_GROWTH * short[0].shortfall
+        halos = {t: h + extra for t, h in halos.items()}
+    todo = [r.tile for r in short] + tiles[1:]
+    for _ in range(MAX_HALO_ROUNDS):
+        if not todo:
+            return results
+        short = run(todo)
+        for r in short:  # a stage's neighbourhoods reached past the halo: that tile again, with room to spare
+            halos[r.tile] += HALO_GROWTH * r.shortfall + 1e-9 * cutter.size
+        todo = [r.tile for r in short]
+    if todo:
+        raise GdtError(f"tiles {todo[:5]}: neighbourhoods still reach past a halo widened {MAX_HALO_ROUNDS} times")
+    return results
 
 
 def _finish(stages: list[StagePlan], slots: dict[str, Any], seed: int) -> None:

@@ -9,7 +9,8 @@ every epoch with the stored layers: geometry, uncertainty, scores, states, visib
 What is bit-exact: everything, on the same package versions and CPU architecture (the built-in stages use no
 thread-count-dependent reductions: cKDTree queries, Open3D closest-point and ray queries, batched 3x3 linear
 algebra). Across machines or library versions, floating-point results may differ in the last bits, so floats are
-compared with a stated tolerance (``rtol``/``atol``) and the report says whether the match was exact.
+compared with a stated tolerance (``rtol``/``atol``) and the report says whether the match was exact. A twin built
+in tiles is re-run in the same tiles (their sizes are in the stages' reports), in this process.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from twin_store import ElementSet, TwinStore
 from .errors import GdtError, PluginError
 from .plugins import Registry, load_registry
 from .provenance import EpochProvenance, StageRecord
-from .runner import EpochPlan, InputPlan, RunPlan, StagePlan, execute_plan, sha256_file
+from .runner import EpochPlan, InputPlan, RunPlan, StagePlan, TilingOptions, execute_plan, sha256_file
 
 EXACT_FIELDS = ("faces", "ids", "state", "visible", "source_epoch")
 FLOAT_FIELDS = ("points", "covariance", "half_widths", "rotation", "uncertainty_summary", "score", "p_value")
@@ -193,6 +194,21 @@ def plan_from_twin(store: TwinStore, registry: Registry, upto: str, *, base_dir:
     return plan, warnings, problems
 
 
+def recorded_tiling(store: TwinStore, epochs: list[str]) -> TilingOptions | None:
+    """The tiles a run used, from its stages' reports: replayed in this process, so that stages drawing random
+    numbers per tile draw what they drew (the twin is the same on every executor)."""
+    sizes = []
+    for eid in epochs:
+        for rec in store.provenance(eid).get("stages", []):
+            tiling = rec.get("report", {}).get("tiling") if isinstance(rec.get("report"), dict) else None
+            if tiling:
+                sizes.append((eid, float(tiling["tile_size"])))
+                break
+    if not sizes:
+        return None
+    return TilingOptions(executor="serial", tile=sizes[0][1], epoch_sizes=tuple(sizes))
+
+
 def audit_twin(twin: str | Path, *, epoch: str | None = None, strict: bool = False, base_dir: Path | None = None,
                rtol: float = 1e-6, atol: float = 1e-9, registry: Registry | None = None) -> AuditReport:
     """Re-run a twin's epochs (up to ``epoch``, default all) from their provenance and compare with what is stored."""
@@ -215,7 +231,7 @@ def audit_twin(twin: str | Path, *, epoch: str | None = None, strict: bool = Fal
     with tempfile.TemporaryDirectory(prefix="gdt-audit-") as scratch:
         if runnable:
             sub = RunPlan(**{**plan.__dict__, "epochs": plan.epochs[: len(runnable)]})
-            rerun = execute_plan(sub, registry, Path(scratch) / "twin")
+            rerun = execute_plan(sub, registry, Path(scratch) / "twin", tiling=recorded_tiling(store, runnable))
             rerun_store = TwinStore.open(rerun.twin)
         for i, eid in enumerate(audited):
             if eid in problems:

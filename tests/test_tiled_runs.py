@@ -8,7 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import BaseModel, ConfigDict
 
+from gdt_pipeline import GdtError, StageSpec, hookimpl
+from gdt_pipeline.audit import audit_twin
 from gdt_pipeline.runner import TilingOptions, run_workflow
 from gdt_pipeline.simulation.family import make_family_scene
 from twin_store import TwinStore
@@ -67,6 +70,40 @@ def test_tiled_run_equals_the_whole_run(scene: Path, whole: Path, registry: obje
     assert _stage_report(tiled, "E1", "sensor_model")["tiling"]["tiles_with_wider_halo"] > 0
     tau = [_stage_report(t, "E1", "calibrated_threshold")["calibration"] for t in (whole, tiled)]
     assert tau[0] == tau[1]
+    audit = audit_twin(tiled, registry=registry)  # re-run in the tiles the run recorded
+    assert audit.ok and all(e.exact for e in audit.epochs)
+
+
+class _Boom(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+def _boom(ctx: object) -> dict:
+    raise ValueError("dataset 'scan': no threshold today")
+
+
+class _BoomPlugin:
+    @staticmethod
+    @hookimpl
+    def gdt_stages() -> list[StageSpec]:
+        return [StageSpec(name="boom", family="threshold", version="0", params=_Boom, run=_boom, tiling="tile",
+                          requires=("scores",), provides=("change",))]
+
+
+def test_a_stage_failing_in_a_tile_names_the_stage_and_the_tile(tmp_path: Path) -> None:
+    from gdt_pipeline.plugins import load_registry
+
+    from .conftest import make_cube_scene, write_cube_workflow
+
+    scene = make_cube_scene(tmp_path / "cube")
+    wf = write_cube_workflow(scene)
+    fixed = "uses: fixed\n    role: as-is\n    with: {tau: 10.0}"
+    wf.write_text(wf.read_text().replace(fixed, "uses: boom\n    role: as-is"))
+    registry = load_registry(extra=[("boom", _BoomPlugin)])
+    where = r"epoch E1, stage 5 'boom', tile \d+ failed: ValueError: dataset 'scan': no threshold today"
+    with pytest.raises(GdtError, match=where):
+        run_workflow(wf, registry=registry, twin=tmp_path / "t", tiling=TilingOptions(tile=0.5))
+    assert not (tmp_path / "t").exists()
 
 
 def test_dask_and_process_pools_give_the_serial_twin(scene: Path, registry: object) -> None:

@@ -54,6 +54,8 @@ class TilingOptions:
     tile: float | None = None
     max_elements: int | None = None
     address: str | None = None
+    # (epoch id, tile edge) pairs fixed beforehand (an audit replays the sizes a run recorded)
+    epoch_sizes: tuple[tuple[str, float], ...] = ()
 
     @property
     def enabled(self) -> bool:

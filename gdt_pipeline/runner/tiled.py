@@ -110,6 +110,10 @@ class TileSession:
         return max(1, (os.cpu_count() or 1) // max(1, self.options.workers or (os.cpu_count() or 1)))
 
 
+    def __post_init__(self) -> None:
+        self.sizes.update(dict(self.options.epoch_sizes))
+
+
 @dataclass
 class TileRunOutcome:
     """Per stage of a tile run: its summed seconds over tiles and its report."""

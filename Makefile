@@ -20,6 +20,7 @@ test: setup
 
 bench: setup
 	$(BIN)/python bench/speed.py
+	$(BIN)/python bench/scale.py
 	$(BIN)/python bench/engine_throughput.py
 	$(BIN)/python bench/voxel_mle.py
 	$(BIN)/python bench/distances.py

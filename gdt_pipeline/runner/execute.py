@@ -19,6 +19,7 @@ import json
 import logging
 import os
 import platform
+import resource
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -54,6 +55,8 @@ from .tiled import TileSession, TilingOptions, chain_runs, run_tiles, tileable
 log = logging.getLogger("gdt.run")
 
 LOCK_NAME = RUN_LOCK_NAME
+# Slots kept to the end of an epoch whoever reads them: what the writer and the provenance use.
+KEPT_SLOTS = frozenset({"composite", "rov", "registration", "epoch"})
 
 
 @dataclass
@@ -206,11 +209,13 @@ def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, 
         slots["reference"] = composite
     upstream = [epoch_key] if epoch_key else []
     records: list[StageRecord] = []
-    for stages in chain_runs(epoch.stages, run.tiles is not None):
+    runs = chain_runs(epoch.stages, run.tiles is not None)
+    for k, stages in enumerate(runs):
         if (len(stages) == 1 and not tileable(stages[0])) or run.tiles is None:
             records.append(_run_chain_stage(run, epoch, stages[0], info, slots, digests, upstream))
         else:
             records += _run_tile_stages(run, epoch, stages, slots, digests, upstream)
+        _drop_unread(slots, runs[k + 1:])
     prov = EpochProvenance(
         gdt_pipeline=run.packages.get("gdt-pipeline", "?"), workflow=run.workflow,
         epoch=EpochRecord(epoch.id, epoch.index, epoch.role), seed=plan.seed,
@@ -220,6 +225,14 @@ def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, 
         python=platform.python_version(), started=started, finished=datetime.now(UTC).isoformat(timespec="seconds"),
         counts=slots["composite"].counts(), epoch_key=upstream[-1] if upstream else None)
     return prov, slots
+
+
+def _drop_unread(slots: dict[str, Any], later: list[list[StagePlan]]) -> None:
+    """Let go of the slots no later stage reads and the epoch's writer does not need (correspondences and scores
+    after the threshold: a tenth of a kilobyte a point)."""
+    wanted = KEPT_SLOTS | {s for run in later for st in run for s in (*st.spec.requires, *st.spec.optional)}
+    for name in [n for n in slots if n not in wanted]:
+        del slots[name]
 
 
 def _run_chain_stage(run: _RunContext, epoch: EpochPlan, stage: StagePlan, info: EpochInfo, slots: dict[str, Any],
@@ -262,8 +275,10 @@ def _stage_record(run: _RunContext, epoch: EpochPlan, stage: StagePlan, digests:
     params = json.loads(stage.params.model_dump_json())
     _, seed = stage_rng(run.plan.seed, epoch.index, s_index)
     key = cache_key(spec, params, digests, upstream)
+    # the process's peak RSS so far: where an epoch's memory goes, stage by stage (workers' own are not in it)
+    peak_mb = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     log.info("stage done", extra={"event": {"epoch": epoch.id, "stage": spec.name, "index": s_index,
-                                            "seconds": round(seconds, 4), "cache_key": key}})
+                                            "seconds": round(seconds, 4), "cache_key": key, "peak_rss_mb": peak_mb}})
     upstream.append(key)
     return StageRecord(index=s_index, id=stage.id, uses=spec.name, family=spec.family, version=spec.version,
                        plugin=spec.plugin, plugin_version=spec.plugin_version, entry_point=spec.entry_point,

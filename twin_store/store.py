@@ -31,6 +31,7 @@ from .integrity import LayerDigests, run_lock_problems
 from .layers import export_atomic, open_layer, usd_message
 from .lock import writer_lock
 from .names import EPOCH_DIR, REASON_NAMES, ROOT_NAME, STATE_NAMES, TWIN_PRIM
+from .payloads import define_payload_set, relative_payloads, restate_preview, wants_payload
 from .swap import leftover_advice, leftovers
 
 
@@ -122,7 +123,11 @@ class TwinStore:
     def _layer(self, epoch_id: str) -> Sdf.Layer:
         """An epoch's layer, after checking the file has the sha256 recorded when it was written."""
         path = self._epoch_file(epoch_id)
-        self._digests.verify(path, self.layer_digests().get(f"{EPOCH_DIR}/{path.name}"), epoch_id)
+        digests = self.layer_digests()
+        self._digests.verify(path, digests.get(f"{EPOCH_DIR}/{path.name}"), epoch_id)
+        for rel, digest in digests.items():  # the epoch's payload layers (large point sets), checked alike
+            if rel.startswith(f"{EPOCH_DIR}/{epoch_id}.") and rel != f"{EPOCH_DIR}/{path.name}":
+                self._digests.verify(self._path / rel, digest, epoch_id)
         return open_layer(path)
 
     def epochs(self) -> list[str]:
@@ -172,7 +177,7 @@ class TwinStore:
         layer = Sdf.Layer.CreateAnonymous(f"{epoch_id}.usdc")
         stage = self._stage_upto(existing, extra=layer)
         stage.SetEditTarget(Usd.EditTarget(layer))
-        self._author_elements(stage, epoch_id, elements)
+        payloads = self._author_elements(stage, epoch_id, elements)
         if region_of_view is not None:
             guides.define_region_of_view(stage, epoch_id, *region_of_view)
         for seg in segments:
@@ -180,6 +185,8 @@ class TwinStore:
         layer.customLayerData = {"gdt": {"epoch": epoch_id, "state_names": Vt.StringArray(list(STATE_NAMES)),
                                          "reason_names": Vt.StringArray(list(REASON_NAMES)),
                                          "provenance_json": json.dumps(provenance, sort_keys=True, default=str)}}
+        del stage  # a live stage would recompose, and warn, once the payload paths below are made relative
+        relative_payloads(layer, self._path / EPOCH_DIR)
         target = self._epoch_file(epoch_id)
         digest = export_atomic(layer, target, ("layer-exported", "layer-renamed"))
         self._digests.remember(target, digest)
@@ -190,7 +197,10 @@ class TwinStore:
         # the layer's sha256, so readers can prove it is the file that was written (see integrity)
         data = dict(new_root.customLayerData)
         gdt = dict(data.get("gdt", {}))
-        gdt["layer_sha256"] = {**dict(gdt.get("layer_sha256", {})), rel: digest}
+        gdt["layer_sha256"] = {**dict(gdt.get("layer_sha256", {})), rel: digest,
+                               **{f"{EPOCH_DIR}/{name}": d for name, d in payloads}}
+        for name, d in payloads:
+            self._digests.remember(self._path / EPOCH_DIR / name, d)
         new_root.customLayerData = {**data, "gdt": gdt}
         export_atomic(new_root, self.root_path, ("root-exported", "root-written"))
         return target
@@ -207,9 +217,10 @@ class TwinStore:
             raise TwinStoreError(f"epoch {epoch_id}: duplicate element set keys")
         return existing
 
-    @staticmethod
-    def _author_elements(stage: Usd.Stage, epoch_id: str, elements: Sequence[ElementSet]) -> None:
-        """Define the new sets and override the known ones; every known set must be restated."""
+    def _author_elements(self, stage: Usd.Stage, epoch_id: str, elements: Sequence[ElementSet]
+                         ) -> list[tuple[str, str]]:
+        """Define the new sets and override the known ones; every known set must be restated. Large point sets go
+        into payload layers of their own (``payloads``): their file names and sha256s are returned."""
         twin = stage.GetPrimAtPath(TWIN_PRIM)
         known = {c.GetName(): c for c in twin.GetChildren()} if twin else {}
         if not twin:
@@ -218,11 +229,16 @@ class TwinStore:
         if missing:
             raise TwinStoreError(f"epoch {epoch_id}: element sets {missing} of earlier epochs are missing; removal is "
                                  f"expressed by state and visibility, never by dropping a set")
+        written = []
         for es in elements:
             if es.key in known:
                 override_element_set(known[es.key], es, epoch_id)
+                restate_preview(stage, es)
+            elif wants_payload(es):
+                written.append(define_payload_set(stage, es, self._path / EPOCH_DIR, epoch_id))
             else:
                 define_element_set(stage, es)
+        return written
 
     # ----------------------------------------------------------------------------------------------------------------
     # Reading an epoch

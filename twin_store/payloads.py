@@ -1,0 +1,102 @@
+"""Large point sets in a layer of their own, loaded on demand, with a light preview a viewer can show instead.
+
+A set of more than ``PAYLOAD_ELEMENTS`` points is authored whole in ``epochs/<epoch>.<key>.usdc`` and the epoch
+layer gives ``/Twin/<key>`` a payload arc to it. Composed normally (as every reader of the twin does) the set is
+all there; later epochs override its per-element values in their own layers as for any set (their opinions are
+stronger than a payload's). A viewer that opens the twin with payloads unloaded (``usdview --unloaded``, or
+``Usd.Stage.Open(root, Usd.Stage.LoadNone)``) reads none of those points and shows ``/Previews/<key>`` instead: every
+k-th point (at most ``PREVIEW_POINTS``) coloured by its change state, restated by each epoch whose states changed.
+The payload file's sha256 is recorded in the root beside the epoch layers' and checked the same way.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+
+from .elements import ElementSet, define_element_set, point_widths, same_values
+from .layers import export_atomic
+from .names import STATE_COLORS, TWIN_PRIM
+
+PAYLOAD_ELEMENTS = 2_000_000
+PREVIEW_POINTS = 200_000
+PREVIEWS_PRIM = "/Previews"
+
+
+def payload_file(epoch_id: str, key: str) -> str:
+    """The file name of a set's payload layer (epoch ids and set keys are identifiers: no dots)."""
+    return f"{epoch_id}.{key}.usdc"
+
+
+def wants_payload(es: ElementSet, limit: int | None = None) -> bool:
+    """Whether a new set goes into its own payload layer."""
+    return es.kind == "points" and len(es.points) > (PAYLOAD_ELEMENTS if limit is None else limit)
+
+
+def define_payload_set(stage: Usd.Stage, es: ElementSet, folder: Path, epoch_id: str) -> tuple[str, str]:
+    """Author ``es`` in its own layer file in ``folder``, a payload arc to it and its preview on ``stage``'s edit
+    target; return the file's name and sha256."""
+    layer = Sdf.Layer.CreateAnonymous(".usdc")
+    define_element_set(Usd.Stage.Open(layer), es)
+    target = folder / payload_file(epoch_id, es.key)
+    digest = export_atomic(layer, target, ("payload-exported", "payload-renamed"))
+    prim = stage.DefinePrim(f"{TWIN_PRIM}/{es.key}")
+    # absolute while the epoch layer is anonymous (so it composes now); made relative before it is written
+    prim.GetPayloads().AddPayload(str(target), Sdf.Path(f"{TWIN_PRIM}/{es.key}"))
+    define_preview(stage, es)
+    return target.name, digest
+
+
+def relative_payloads(layer: Sdf.Layer, folder: Path) -> None:
+    """Point the layer's payload arcs into ``folder`` by relative paths, so the twin can move (staging, copies)."""
+    twin = layer.GetPrimAtPath(Sdf.Path(TWIN_PRIM))
+    if twin is None:
+        return
+    for spec in twin.nameChildren:
+        items = list(spec.payloadList.prependedItems)
+        if not items:
+            continue
+        fixed = [Sdf.Payload(f"./{Path(p.assetPath).name}" if Path(p.assetPath).parent == folder else p.assetPath,
+                             p.primPath) for p in items]
+        spec.payloadList.prependedItems = fixed
+
+
+def _sample(n: int) -> np.ndarray:
+    return np.arange(0, n, max(1, -(-n // PREVIEW_POINTS)))
+
+
+def _colours(es: ElementSet, rows: np.ndarray) -> np.ndarray:
+    state = np.asarray(es.state, dtype=np.uint8)[rows]
+    return STATE_COLORS[np.minimum(state, len(STATE_COLORS) - 1)].astype(np.float32)
+
+
+def define_preview(stage: Usd.Stage, es: ElementSet) -> None:
+    """``/Previews/<key>``: every k-th point of the set, coloured by state, hidden ones zero-wide."""
+    rows = _sample(len(es.points))
+    pts = np.asarray(es.points, dtype=np.float64)[rows]
+    origin = (pts.min(axis=0) + pts.max(axis=0)) / 2 if len(pts) else np.zeros(3)
+    geom = UsdGeom.Points.Define(stage, f"{PREVIEWS_PRIM}/{es.key}")
+    geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy((pts - origin).astype(np.float32)))
+    geom.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*map(float, origin)))
+    geom.CreateWidthsAttr(Vt.FloatArray.FromNumpy(point_widths(pts, np.asarray(es.visible)[rows])))
+    geom.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+    geom.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(Vt.Vec3fArray.FromNumpy(_colours(es, rows)))
+    geom.GetPrim().SetDocumentation(f"every {max(1, -(-len(es.points) // PREVIEW_POINTS))}-th point of "
+                                    f"{TWIN_PRIM}/{es.key}, for viewers that leave payloads unloaded")
+
+
+def restate_preview(stage: Usd.Stage, es: ElementSet) -> None:
+    """A later epoch's states and visibility on the set's preview, where they changed."""
+    prim = stage.GetPrimAtPath(f"{PREVIEWS_PRIM}/{es.key}")
+    if not prim:
+        return
+    geom = UsdGeom.Points(prim)
+    rows = _sample(len(es.points))
+    colours = _colours(es, rows)
+    if not same_values(geom.GetDisplayColorPrimvar().Get(), colours):
+        geom.GetDisplayColorPrimvar().Set(Vt.Vec3fArray.FromNumpy(colours))
+    widths = point_widths(np.asarray(es.points, dtype=np.float64)[rows], np.asarray(es.visible)[rows])
+    if not same_values(geom.GetWidthsAttr().Get(), widths):
+        geom.GetWidthsAttr().Set(Vt.FloatArray.FromNumpy(widths))

@@ -124,3 +124,11 @@ def test_cli_asks_for_tiles_and_names_the_executors(scene: Path, tmp_path: Path)
     res = run_gdt("run", str(scene), "--twin", str(tmp_path / "t"), "--executor", "slurm", "--tile", "1")
     assert res.returncode != 0
     assert "unknown executor 'slurm'" in res.stderr and "dask, processes, serial" in res.stderr
+
+
+def test_validate_names_an_unknown_executor_where_it_is(scene: Path) -> None:
+    wf = scene.parent / "dusk.yaml"
+    wf.write_text(scene.read_text() + "execution:\n  executor: dusk\n  tile: 1.0\n")
+    res = run_gdt("validate", str(wf))
+    assert res.returncode != 0
+    assert "execution.executor: unknown executor 'dusk'" in res.stdout and "dask" in res.stdout

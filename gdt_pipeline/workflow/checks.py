@@ -135,7 +135,7 @@ def slot_problems(data: dict, registry: Registry, problems: Problems) -> None:
 
 
 def reference_problems(data: dict, registry: Registry, problems: Problems, base: Path) -> None:
-    """Checks that need more than the schema: epoch references, reader names, input files present."""
+    """Checks that need more than the schema: epoch references, reader and executor names, input files present."""
     epochs = [e for e in listed(data.get("epochs")) if isinstance(e, dict)]
     ids = [e.get("id") for e in epochs]
     for s_index, entry in enumerate(listed(data.get("stages"))):
@@ -150,6 +150,11 @@ def reference_problems(data: dict, registry: Registry, problems: Problems, base:
             if eid not in ids:
                 problems.add(("stages", s_index, "epochs", j),
                              unknown_name_message("epoch", str(eid), [str(i) for i in ids]))
+    execution = data.get("execution")
+    executor = execution.get("executor") if isinstance(execution, dict) else None
+    if isinstance(executor, str) and executor not in {e.name for e in registry.executors()}:
+        problems.add(("execution", "executor"),
+                     unknown_name_message("executor", executor, [e.name for e in registry.executors()]))
     for e_index, epoch in enumerate(epochs):
         inputs = [(i, inp) for i, inp in enumerate(listed(epoch.get("inputs"))) if isinstance(inp, dict)]
         for i_index, inp in inputs:

@@ -8,7 +8,8 @@ pool or Dask workers and scheduler; sampled every 0.2 s), bytes per point, the t
     .venv/bin/python bench/scale.py [--sizes 1000000,10000000,50000000] [--ways whole,serial,processes,dask]
         [--tile-elements 500000] [--workers 2] [--repeats 1]
 
-A way that fails (out of memory) is printed as such with the peak it reached, and the next one runs.
+A way that fails (out of memory) is printed as such with the peak it reached, and the next one runs; a way whose
+bytes a point at the last size project past the free memory at this size is skipped, with the projection.
 """
 
 from __future__ import annotations
@@ -30,6 +31,9 @@ from speed_scene import COUNTER, build
 ROOT = Path(__file__).resolve().parents[1]
 GDT = [sys.executable, "-m", "gdt_pipeline.cli"]
 SAMPLE_SECONDS = 0.2
+# A way is not tried at a size where the bytes a point it took at the last size would fill more than this share of
+# the memory free now.
+MEMORY_SHARE = 0.9
 
 
 def tree_rss(proc: psutil.Process) -> int:
@@ -156,6 +160,7 @@ def main() -> None:
     ap.add_argument("--cad", type=Path, default=COUNTER)
     args = ap.parse_args()
     warmed = False
+    per_point: dict[str, float] = {}
     for size in (int(s) for s in args.sizes.split(",")):
         t0 = time.perf_counter()
         scene = build(args.out / f"{size}", size, counter=args.cad)
@@ -166,7 +171,16 @@ def main() -> None:
             run_way(folder, "serial", args)  # compiles the kernels (cached); not counted
             warmed = True
         for way in args.ways.split(","):
+            need = per_point.get(way, 0.0) * scene["points"]
+            free = psutil.virtual_memory().available
+            if need > MEMORY_SHARE * free:  # an out-of-memory kill on a shared machine takes others down too
+                print(f"  {way:<10} skipped: {per_point[way]:.0f} B/point measured at the last size would need "
+                      f"{need / 2**30:.1f} GB, {free / 2**30:.1f} GB are free", flush=True)
+                continue
             runs = [run_way(folder, way, args) for _ in range(args.repeats)]
+            ok = [r for r in runs if r["code"] == 0]
+            if ok:
+                per_point[way] = float(np.median([r["rss_mb"] for r in ok])) * 2**20 / scene["points"]
             print_way(scene["points"], way, runs)
             if way != "whole" and runs[0]["code"] == 0 and (folder / "twin-whole").exists():
                 print(f"  {'':<10} {compare(folder, way)}", flush=True)

@@ -44,6 +44,8 @@ def test_sample_plugin_is_discovered_through_its_entry_point(registry) -> None:
     rows = {r["name"]: r for r in json.loads(res.stdout)}
     assert rows["c2c"]["plugin"] == "gdt-c2c" and rows["c2c"]["family"] == "distance"
     assert rows["bhattacharyya"]["plugin"] == "gdt-pipeline"
+    assert rows["bhattacharyya"]["tiling"] == "tile" and rows["calibrated_threshold"]["tiling"] == "epoch"
+    assert {r["name"] for r in rows.values() if r["family"] == "executor"} == {"serial", "processes", "dask"}
     table = run_gdt("plugins")
     assert re.search(r"distance\s+│\s+c2c\s+│\s+gdt-c2c", table.stdout), table.stdout
 

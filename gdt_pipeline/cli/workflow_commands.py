@@ -142,24 +142,33 @@ def validate(workflows: tuple[Path, ...]) -> None:
 
 
 @click.command()
-@click.option("--family", help="Only this family (reader, registrar, uncertainty, ...).")
+@click.option("--family", help="Only this family (reader, registrar, uncertainty, ..., executor).")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 def plugins(family: str | None, as_json: bool) -> None:
-    """List the installed stages: family, name, plugin, version."""
+    """List the installed stages (and readers, tile executors): family, name, plugin, version."""
     registry = installed_registry()
-    rows = registry.stages(family)
+    rows = [] if family == "executor" else registry.stages(family)
+    executors = registry.executors() if family in (None, "executor") else []
     if as_json:
         click.echo(json.dumps([{"family": s.family, "name": s.name, "plugin": s.plugin,
                                 "plugin_version": s.plugin_version, "version": s.version, "entry_point": s.entry_point,
                                 "requires": list(s.requires), "provides": list(s.provides),
-                                "description": s.description} for s in rows], indent=2))
+                                "tiling": getattr(s, "tiling", None), "description": s.description} for s in rows]
+                               + [{"family": "executor", "name": e.name, "plugin": e.plugin,
+                                   "plugin_version": e.plugin_version, "version": e.version,
+                                   "entry_point": e.entry_point, "description": e.description} for e in executors],
+                               indent=2))
         return
     table = Table(title=f"gdt stages ({len(rows)})")
     for col in ("family", "name", "plugin", "version", "requires -> provides"):
         table.add_column(col)
     for s in rows:
+        tiles = " (in tiles)" if getattr(s, "tiling", "epoch") == "tile" else ""
         table.add_row(s.family, s.name, f"{s.plugin} {s.plugin_version} ({s.entry_point})", s.version,
-                      f"{', '.join(s.requires)} -> {', '.join(s.provides)}")
+                      f"{', '.join(s.requires)} -> {', '.join(s.provides)}{tiles}")
+    for e in executors:
+        table.add_row("executor", e.name, f"{e.plugin} {e.plugin_version} ({e.entry_point})", e.version,
+                      e.description)
     Console(width=max(120, out_console.width)).print(table)
 
 

@@ -14,7 +14,7 @@ from pxr import Sdf, Usd, UsdGeom
 import twin_store.payloads as payloads
 from twin_store import STATE_COLORS, TwinStore, TwinStoreError
 
-from .test_twin_store import _mesh, _points
+from .test_twin_store import mesh_set, points_set
 
 
 @pytest.fixture
@@ -25,7 +25,7 @@ def big_twin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, dic
     store = TwinStore.create(tmp_path / "twin")
     state = np.zeros(200, np.uint8)
     state[:40] = 1
-    epochs = {"E0": [_mesh()], "E1": [_mesh(), _points()], "E2": [_mesh(), _points(state=state,
+    epochs = {"E0": [mesh_set()], "E1": [mesh_set(), points_set()], "E2": [mesh_set(), points_set(state=state,
                                                                                    visible=np.arange(200) >= 20)]}
     for eid, sets in epochs.items():
         store.write_epoch(eid, sets, {"epoch": eid})

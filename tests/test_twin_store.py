@@ -15,7 +15,8 @@ from twin_store import STATE_COLORS, ElementSet, TwinStore, TwinStoreError
 UTM = np.array([634000.0, 4831000.0, 80.0])
 
 
-def _mesh(state=None, visible=None) -> ElementSet:
+def mesh_set(state: np.ndarray | None = None, visible: np.ndarray | None = None) -> ElementSet:
+    """A small georeferenced pyramid mesh with box tolerances."""
     verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 1.0]]) + UTM
     faces = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4], [0, 2, 1], [0, 3, 2]])
     n = len(faces)
@@ -26,7 +27,8 @@ def _mesh(state=None, visible=None) -> ElementSet:
                       source_epoch=np.zeros(n, np.int32), visible=np.ones(n, bool) if visible is None else visible)
 
 
-def _points(state=None, visible=None) -> ElementSet:
+def points_set(state: np.ndarray | None = None, visible: np.ndarray | None = None) -> ElementSet:
+    """200 georeferenced points with full covariances and scores."""
     rng = np.random.default_rng(0)
     pts = rng.uniform(0, 1, (200, 3)) + UTM + [0, 0, 2]
     a = rng.normal(size=(200, 3, 3)) * 0.01
@@ -43,14 +45,14 @@ def _points(state=None, visible=None) -> ElementSet:
 @pytest.fixture
 def twin(tmp_path: Path) -> tuple[Path, dict[str, list[ElementSet]]]:
     store = TwinStore.create(tmp_path / "twin", meters_per_unit=0.001, up_axis="Y")
-    e0 = [_mesh()]
-    e1 = [_mesh(), _points()]
+    e0 = [mesh_set()]
+    e1 = [mesh_set(), points_set()]
     removed = np.zeros(6, bool)
     removed[[1, 4]] = True
     st = np.where(removed, 2, 0).astype(np.uint8)
     pstate = np.zeros(200, np.uint8)
     pstate[:10] = 1
-    e2 = [_mesh(state=st, visible=~removed), _points(state=pstate, visible=np.arange(200) >= 5)]
+    e2 = [mesh_set(state=st, visible=~removed), points_set(state=pstate, visible=np.arange(200) >= 5)]
     for eid, elems in (("E0", e0), ("E1", e1), ("E2", e2)):
         store.write_epoch(eid, elems, {"epoch": eid, "stages": [{"uses": "x", "params": {"tau": 1.5}}]})
     return tmp_path / "twin", {"E0": e0, "E1": e1, "E2": e2}
@@ -132,14 +134,14 @@ def test_errors_name_what_is_wrong(twin) -> None:
         store.write_epoch("E1", written["E2"], {})
     with pytest.raises(TwinStoreError, match="element sets \\['E1_scan'\\] of earlier epochs are missing"):
         store.write_epoch("E3", [written["E2"][0]], {})
-    moved = _mesh()
+    moved = mesh_set()
     moved = ElementSet(**{**moved.__dict__, "points": moved.points + 0.01})
     with pytest.raises(TwinStoreError, match="geometry of an existing element set cannot change: E0_part"):
         store.write_epoch("E3", [moved, written["E2"][1]], {})
     with pytest.raises(TwinStoreError, match="'bad key' is not a valid USD identifier"):
-        ElementSet(**{**_mesh().__dict__, "key": "bad key"})
+        ElementSet(**{**mesh_set().__dict__, "key": "bad key"})
     with pytest.raises(TwinStoreError, match="E0_part: state must have shape"):
-        ElementSet(**{**_mesh().__dict__, "state": np.zeros(3, np.uint8)})
+        ElementSet(**{**mesh_set().__dict__, "state": np.zeros(3, np.uint8)})
     assert store.epochs() == ["E0", "E1", "E2"]  # failed writes left nothing behind
     assert sorted(p.name for p in (path / "epochs").iterdir()) == ["E0.usdc", "E1.usdc", "E2.usdc"]
     with pytest.raises(TwinStoreError, match="already exists"):

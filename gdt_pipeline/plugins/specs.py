@@ -99,6 +99,7 @@ class StageContext:
     notes: dict[str, Any] = field(default_factory=dict)
     tile: TileBounds | None = None
     shortfalls: list[float] = field(default_factory=list)
+    survey: Mapping[str, Any] = field(default_factory=dict)
 
     def report(self, **values: Any) -> None:
         """Record figures worth keeping (a tolerance reached, a rate achieved): they go into the epoch's provenance."""
@@ -138,7 +139,9 @@ class StageSpec:
     Tiling (``docs/scale.md``): a stage with ``tiling="tile"`` promises that its output for a recent element depends
     only on data within ``reach(params, slots)`` of that element (0 when ``reach`` is None), so the runner may run it
     on one 3-D tile plus a halo at a time and keep the core. Such a stage provides only ``recent`` (uncertainty
-    attached, geometry untouched), ``correspondences``, ``scores`` or ``change``. ``finish(ctx)``, when given, runs
+    attached, geometry untouched), ``correspondences``, ``scores`` or ``change``. ``survey(params, slots)`` gives the
+    whole-epoch figures a stage needs in every tile alike (a mean facet area): computed once on the epoch's slots,
+    whole run or tiled, and handed over as ``ctx.survey``. ``finish(ctx)``, when given, runs
     once on the whole epoch's merged slots after a tiled run and returns slots to replace (e.g. a null simulator over
     every pair); a stage whose output cannot travel between processes (closures) rebuilds it there.
     """
@@ -156,6 +159,7 @@ class StageSpec:
     validate: Callable[[Any, Path], Sequence[tuple[str, str]]] | None = None
     tiling: Literal["epoch", "tile"] = "epoch"
     reach: Callable[[Any, Mapping[str, Any]], float] | None = None
+    survey: Callable[[Any, Mapping[str, Any]], Mapping[str, Any]] | None = None
     finish: Callable[[StageContext], Mapping[str, Any]] | None = None
     plugin: str = ""
     plugin_version: str = ""

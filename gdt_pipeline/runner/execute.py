@@ -48,7 +48,7 @@ from ..types import Composite, Dataset, EpochInfo, Registration
 from ..workflow import load_workflow
 from .inputs import input_digests, read_input, relative_to_workflow
 from .plan import EpochPlan, RunPlan, StagePlan, plan_from_workflow
-from .stage_call import run_stage, stage_rng
+from .stage_call import run_stage, stage_rng, stage_survey
 from .staging import check_overwritable, recover, staging_path, swap_into_place, write_json_atomic
 from .tiled import TileSession, TilingOptions, chain_runs, run_tiles, tileable
 
@@ -242,10 +242,11 @@ def _run_chain_stage(run: _RunContext, epoch: EpochPlan, stage: StagePlan, info:
     rng, seed = stage_rng(run.plan.seed, epoch.index, s_index)
     where = f"epoch {epoch.id}, stage {s_index} {spec.name!r} ({spec.plugin} {spec.plugin_version})"
     visible = {k: v for k, v in slots.items() if k in spec.requires or k in spec.optional or k == "epoch"}
-    ctx = StageContext(stage=spec, params=stage.params, slots=visible, epoch=info, rng=rng, seed=seed,
-                       log=logging.getLogger(f"gdt.stage.{spec.name}"), progress=run.reporter.progress)
     run.reporter.stage_started(epoch, s_index, spec)
     t0 = time.perf_counter()
+    ctx = StageContext(stage=spec, params=stage.params, slots=visible, epoch=info, rng=rng, seed=seed,
+                       log=logging.getLogger(f"gdt.stage.{spec.name}"), progress=run.reporter.progress,
+                       survey=stage_survey(spec, stage.params, visible, where))
     slots.update(run_stage(spec, ctx, where))
     dt = time.perf_counter() - t0
     run.reporter.stage_finished(epoch, s_index, spec, dt)

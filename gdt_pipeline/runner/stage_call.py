@@ -54,6 +54,20 @@ def run_stage(spec: StageSpec, ctx: StageContext, where: str) -> dict[str, Any]:
     return out
 
 
+def stage_survey(spec: StageSpec, params: Any, slots: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """The whole-epoch figures a stage asked for (``StageSpec.survey``), the same for a whole run and every tile."""
+    if spec.survey is None:
+        return {}
+    try:
+        return dict(spec.survey(params, slots))
+    except GdtError as exc:
+        raise type(exc)(f"{where}: {exc}") from exc
+    except (KeyboardInterrupt, MemoryError):
+        raise
+    except Exception as exc:
+        raise StageError(f"{where} failed surveying the epoch: {type(exc).__name__}: {exc}") from exc
+
+
 def stage_rng(seed: int, epoch_index: int, stage_index: int, tile: int | None = None
               ) -> tuple[np.random.Generator, int]:
     """The stage's own generator and its integer seed, from the workflow seed and the stage's place (and tile: each

@@ -27,6 +27,7 @@ class TileStage:
     name: str
     index: int
     params: dict[str, Any]
+    survey: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -97,7 +98,8 @@ def run_tile(task: TileTask, registry: Registry | None = None) -> TileResult:
         visible = {k: v for k, v in slots.items() if k in spec.requires or k in spec.optional or k == "epoch"}
         ctx = StageContext(stage=spec, params=params, slots=visible, epoch=task.epoch, rng=rng, seed=seed,
                            log=logging.getLogger(f"gdt.stage.{spec.name}"), progress=NullProgress(),
-                           tile=_widened(task.bounds, task.later_reach[k] if task.later_reach else 0.0))
+                           tile=_widened(task.bounds, task.later_reach[k] if task.later_reach else 0.0),
+                           survey=st.survey)
         t0 = time.perf_counter()
         slots.update(run_stage(spec, ctx, f"epoch {task.epoch.id}, stage {st.index} {spec.name!r}, tile {task.tile}"))
         seconds.append(time.perf_counter() - t0)

@@ -43,7 +43,7 @@ from ..tiling import (
 from ..tiling.crop import take_change, take_scores
 from ..types import Composite, CompositeItem, Dataset
 from .plan import StagePlan, TilingOptions
-from .stage_call import stage_rng
+from .stage_call import stage_rng, stage_survey
 from .tile_work import TileResult, TileStage, TileTask, run_tile
 
 log = logging.getLogger("gdt.tiles")
@@ -63,8 +63,9 @@ def tileable(st: StagePlan) -> bool:
 
 
 def chain_runs(stages: list[StagePlan], tiled: bool) -> list[list[StagePlan]]:
-    """The chain cut into runs of tileable stages and single whole-epoch stages. A stage whose reach depends on data
-    starts a new run when it reads a slot the run already changes (its reach is measured on the run's input)."""
+    """The chain cut into runs of tileable stages and single whole-epoch stages. A stage whose reach or survey
+    depends on data starts a new run when it reads a slot the run already changes (both are measured on the run's
+    input)."""
     runs: list[list[StagePlan]] = []
     current: list[StagePlan] = []
     provided: set[str] = set()
@@ -73,7 +74,8 @@ def chain_runs(stages: list[StagePlan], tiled: bool) -> list[list[StagePlan]]:
             runs += [current, [st]] if current else [[st]]
             current, provided = [], set()
             continue
-        if current and st.spec.reach is not None and provided & set(st.spec.requires):
+        measured = st.spec.reach is not None or st.spec.survey is not None
+        if current and measured and provided & set(st.spec.requires):
             runs.append(current)
             current, provided = [], set()
         current.append(st)
@@ -141,6 +143,7 @@ class _Cutter:
     reads: set[str]
     halo: float
     size: float
+    surveys: dict[int, dict[str, Any]] = field(default_factory=dict)  # per stage index, its whole-epoch figures
 
     def __post_init__(self) -> None:
         recent: list[Dataset] = self.slots["recent"]
@@ -179,7 +182,8 @@ class _Cutter:
                 cut[name] = [take(x, ids[x.query]) for x in cut[name]]
         provides = tuple(sorted({s for st in stages for s in st.spec.provides}))
         return TileTask(tile=tile, seed=seed, epoch=self.slots["epoch"], stages=tuple(
-            TileStage(st.spec.name, st.index, json.loads(st.params.model_dump_json())) for st in stages),
+            TileStage(st.spec.name, st.index, json.loads(st.params.model_dump_json()), self.surveys.get(st.index, {}))
+            for st in stages),
             slots=cut, recent_ids=ids, core=core, n_elements=[ds.n_elements for ds in recent], ref_keeps=keeps,
             provides=provides, candidate_ids=candidate_ids, threads=threads,
             bounds=TileBounds(lo, hi, blo, bhi), later_reach=later_reach)
@@ -258,7 +262,9 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
         positions = [ds.element_positions() for ds in slots["recent"]]
         session.sizes[epoch_id] = session.options.tile or size_for_budget(
             positions, int(session.options.max_elements or 1))
-    cutter = _Cutter(slots, reads, float(sum(reaches)), session.sizes[epoch_id])
+    surveys = {st.index: stage_survey(st.spec, st.params, slots, f"stage {st.index} {st.spec.name!r}")
+               for st in stages if st.spec.survey is not None}
+    cutter = _Cutter(slots, reads, float(sum(reaches)), session.sizes[epoch_id], surveys)
     executor, fn = session.executor()
     threads = session.worker_threads()
     log.info("tiles: %d of %.4g with halo %.4g for %s", len(cutter.members), cutter.size, cutter.halo,

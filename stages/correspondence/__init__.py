@@ -25,7 +25,15 @@ from gdt_pipeline.geometry import ReferenceIndex
 from gdt_pipeline.geometry.extent import check_scales
 from gdt_pipeline.measures import uncertainty_rows
 
-from .directed import ReferenceMeshes, ReferencePoints, point_to_mesh, point_to_point, query_samples, to_correspondences
+from .directed import (
+    ReferenceMeshes,
+    ReferencePoints,
+    default_density,
+    point_to_mesh,
+    point_to_point,
+    query_samples,
+    to_correspondences,
+)
 
 
 class NearestParams(BaseModel):
@@ -94,7 +102,9 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
                              f"{other}_to_{'point' if use_points else 'mesh'} or auto")
         if ds.uncertainty is None:
             raise ValueError(f"recent dataset {ds.name!r} has no uncertainty: add an uncertainty stage before {name}")
-        element, qpos = query_samples(ds, ctx.rng, p.sample_density, p.max_samples_per_facet)
+        # the density from the whole epoch (a tile holds some facets only); facets sampled by their own hash
+        density = p.sample_density or ctx.survey.get("facet_density", {}).get(ds.name)
+        element, qpos = query_samples(ds, _sample_seed(ctx), density, p.max_samples_per_facet)
         qcov = np.asarray(ds.uncertainty.covariance(ds.n_elements))[element]
         parts = []
         if ref_pts is not None and not ref_pts.empty:
@@ -111,6 +121,17 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
                                 "query_points": len(qpos)}})
         out.append(corr)
     return {"correspondences": out}
+
+
+def _sample_seed(ctx: StageContext) -> int:
+    """The seed of facet samples: the workflow's, the epoch's and the stage's place (the same in every tile)."""
+    return int(np.random.SeedSequence(ctx.epoch.seed, spawn_key=(ctx.epoch.index, 0xFACE)).generate_state(1)[0])
+
+
+def _directed_survey(params: DirectedParams, slots: Mapping[str, Any]) -> dict[str, Any]:
+    """The default sample density of each recent mesh, from all its facets (a tile holds some only)."""
+    return {"facet_density": {ds.name: default_density(ds) for ds in slots["recent"]
+                              if ds.faces is not None and len(ds.faces)}}
 
 
 def _largest_variance(u: Any) -> float:
@@ -153,7 +174,7 @@ def _stage(name: str, query_kind: str | None, points: bool, meshes: bool, descri
     return StageSpec(name=name, family="correspondence", version="1.0.0", params=DirectedParams,
                      run=lambda ctx: _directed(ctx, name, query_kind, points, meshes),
                      requires=("recent", "reference"), provides=("correspondences",), description=description,
-                     tiling="tile", reach=_directed_reach)
+                     tiling="tile", reach=_directed_reach, survey=_directed_survey)
 
 
 @hookimpl

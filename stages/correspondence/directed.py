@@ -33,18 +33,56 @@ class Candidates:
     mixture: MixtureUncertainty | None = None
 
 
-def query_samples(ds: Dataset, rng: np.random.Generator, density: float | None, max_per_facet: int
+def facet_areas(ds: Dataset) -> np.ndarray:
+    """Area of each facet of a mesh dataset."""
+    tri = ds.points[ds.faces]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def default_density(ds: Dataset) -> float:
+    """About four samples on an average facet of the dataset."""
+    return 4.0 / max(float(facet_areas(ds).mean()), 1e-300)
+
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+
+
+def _mix(x: np.ndarray) -> np.ndarray:
+    """splitmix64's finaliser: a well-mixed 64-bit hash of each 64-bit value (wrapping arithmetic)."""
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+def facet_uniforms(tri: np.ndarray, facet: np.ndarray, number: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Two uniforms in [0, 1) per sample, from a hash of its facet's corners, its number on the facet and the seed.
+
+    Hand-rolled rather than a numpy Generator because a Generator's draws depend on which facets came before: these
+    depend on the facet alone, so a tile holding some of the facets samples them exactly as the whole epoch does."""
+    corners = np.ascontiguousarray(tri, dtype=np.float64).view(np.uint64).reshape(len(tri), 9)
+    key = np.full(len(tri), np.uint64(seed % 2**64), dtype=np.uint64)
+    for c in range(9):
+        key = _mix(key ^ corners[:, c] ^ (_GOLDEN * np.uint64(c + 1)))
+    base = key[facet] + number.astype(np.uint64) * _GOLDEN
+    scale = 2.0 ** -53
+    return ((_mix(base) >> np.uint64(11)).astype(np.float64) * scale,
+            (_mix(base ^ np.uint64(0xD1B54A32D192ED03)) >> np.uint64(11)).astype(np.float64) * scale)
+
+
+def query_samples(ds: Dataset, seed: int, density: float | None, max_per_facet: int
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Query points with the element each belongs to: the points themselves, or area-weighted facet samples."""
+    """Query points with the element each belongs to: the points themselves, or area-weighted facet samples
+    (``density`` per unit², default about four on an average facet), each facet's drawn from its own hash."""
     if ds.faces is None:
         return np.arange(len(ds.points)), ds.points
     tri = ds.points[ds.faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     if density is None:
-        density = 4.0 / max(float(area.mean()), 1e-300)  # about four samples on an average facet
-    counts = np.clip(np.round(area * density).astype(np.int64), 1, max_per_facet)
+        density = default_density(ds)
+    counts = np.clip(np.round(facet_areas(ds) * density).astype(np.int64), 1, max_per_facet)
     idx = np.repeat(np.arange(len(tri)), counts)
-    r1, r2 = rng.random(len(idx)), rng.random(len(idx))
+    number = np.arange(len(idx)) - np.repeat(np.cumsum(counts) - counts, counts)
+    with np.errstate(over="ignore"):
+        r1, r2 = facet_uniforms(tri, idx, number, seed)
     flip = r1 + r2 > 1
     r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
     t = tri[idx]

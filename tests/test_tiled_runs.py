@@ -132,3 +132,36 @@ def test_validate_names_an_unknown_executor_where_it_is(scene: Path) -> None:
     res = run_gdt("validate", str(wf))
     assert res.returncode != 0
     assert "execution.executor: unknown executor 'dusk'" in res.stdout and "dask" in res.stdout
+
+
+class _WholeNearestPlugin:
+    """``nearest`` as a whole-epoch stage: the tiled distance and threshold after it get its correspondences cut."""
+
+    @staticmethod
+    @hookimpl
+    def gdt_stages() -> list[StageSpec]:
+        import dataclasses
+
+        from gdt_pipeline.plugins import load_registry
+
+        nearest = load_registry(blocked={"gdt-c2c", "gdt-m3c2"}).get("nearest")
+        return [dataclasses.replace(nearest, name="nearest_whole", tiling="epoch", reach=None)]
+
+
+def test_correspondences_made_whole_are_cut_into_tiles(tmp_path: Path) -> None:
+    from gdt_pipeline.plugins import load_registry
+
+    from .conftest import make_cube_scene, write_cube_workflow
+
+    scene = make_cube_scene(tmp_path / "cube")
+    wf = write_cube_workflow(scene)
+    wf.write_text(wf.read_text().replace("uses: nearest\n", "uses: nearest_whole\n"))
+    registry = load_registry(extra=[("whole_nearest", _WholeNearestPlugin)])
+    whole = _elements(run_workflow(wf, registry=registry, twin=tmp_path / "whole").twin)
+    tiled_twin = run_workflow(wf, registry=registry, twin=tmp_path / "tiled", tiling=TilingOptions(tile=0.3)).twin
+    tiled = _elements(tiled_twin)
+    assert _stage_report(tiled_twin, "E1", "bhattacharyya")["tiling"]["tiles"] > 8
+    for key, x in whole.items():
+        assert np.array_equal(x.state, tiled[key].state), key
+        assert np.array_equal(x.score, tiled[key].score, equal_nan=True), key
+    assert int(np.sum(whole[("E1", "E1_scan")].state == 1)) > 500  # the new box is found

@@ -95,6 +95,9 @@ class TileSession:
     sizes: dict[str, float] = field(default_factory=dict)
     _executor: TileExecutor | None = None
 
+    def __post_init__(self) -> None:
+        self.sizes.update(dict(self.options.epoch_sizes))
+
     def executor(self) -> tuple[TileExecutor, Callable[[TileTask], TileResult]]:
         """The open executor and the function it runs per tile."""
         spec = self.registry.executor(self.options.executor)
@@ -110,10 +113,6 @@ class TileSession:
         if self.registry.executor(self.options.executor).in_process:
             return None
         return max(1, (os.cpu_count() or 1) // max(1, self.options.workers or (os.cpu_count() or 1)))
-
-
-    def __post_init__(self) -> None:
-        self.sizes.update(dict(self.options.epoch_sizes))
 
 
 @dataclass

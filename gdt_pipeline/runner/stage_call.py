@@ -7,7 +7,8 @@ candidate of every element and the pairs a null simulator draws.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import contextlib
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
@@ -30,16 +31,24 @@ def element_ordered(corr: Correspondences) -> Correspondences:
                            ref_row=None if corr.ref_row is None else corr.ref_row[order])
 
 
-def run_stage(spec: StageSpec, ctx: StageContext, where: str) -> dict[str, Any]:
-    """Run one stage and check that it returned exactly the slots it declares, each of the right type."""
+@contextlib.contextmanager
+def stage_errors(where: str, doing: str = "") -> Iterator[None]:
+    """A stage's errors as one paragraph naming where it ran: its own ``GdtError`` kept with the place prefixed,
+    anything else a ``StageError`` (interrupts and out-of-memory pass through)."""
     try:
-        out = spec.run(ctx)
+        yield
     except GdtError as exc:
         raise type(exc)(f"{where}: {exc}") from exc
     except (KeyboardInterrupt, MemoryError):
         raise
     except Exception as exc:
-        raise StageError(f"{where} failed: {type(exc).__name__}: {exc}") from exc
+        raise StageError(f"{where} failed{doing}: {type(exc).__name__}: {exc}") from exc
+
+
+def run_stage(spec: StageSpec, ctx: StageContext, where: str) -> dict[str, Any]:
+    """Run one stage and check that it returned exactly the slots it declares, each of the right type."""
+    with stage_errors(where):
+        out = spec.run(ctx)
     if not isinstance(out, Mapping):
         raise StageError(f"{where} returned {type(out).__name__}, not a mapping of slots")
     got, want = set(out), set(spec.provides)
@@ -58,14 +67,8 @@ def stage_survey(spec: StageSpec, params: Any, slots: Mapping[str, Any], where: 
     """The whole-epoch figures a stage asked for (``StageSpec.survey``), the same for a whole run and every tile."""
     if spec.survey is None:
         return {}
-    try:
+    with stage_errors(where, " surveying the epoch"):
         return dict(spec.survey(params, slots))
-    except GdtError as exc:
-        raise type(exc)(f"{where}: {exc}") from exc
-    except (KeyboardInterrupt, MemoryError):
-        raise
-    except Exception as exc:
-        raise StageError(f"{where} failed surveying the epoch: {type(exc).__name__}: {exc}") from exc
 
 
 def stage_rng(seed: int, epoch_index: int, stage_index: int, tile: int | None = None

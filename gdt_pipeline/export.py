@@ -1,4 +1,5 @@
-"""Export the twin at an epoch: flat USD, USDZ, PLY (one file per element set), OBJ, or a PNG picture.
+"""Export the twin at an epoch: flat USD, USDZ, PLY (one file per element set), OBJ, LAS/LAZ with the per-point
+values (``export_las``), or a PNG picture.
 
 PLY and OBJ carry the composite only (hidden elements are left out) with change colours; USD keeps everything,
 the history included. Point sets go through Open3D (PLY with double coordinates, so georeferenced clouds keep their
@@ -16,7 +17,7 @@ from twin_store import STATE_COLORS, ElementSet, TwinStore
 
 from .errors import GdtError
 
-FORMATS = ("usda", "usdc", "usdz", "ply", "obj", "png")
+FORMATS = ("usda", "usdc", "usdz", "ply", "obj", "png", "las", "laz")
 
 
 def _colors(es: ElementSet) -> np.ndarray:
@@ -90,6 +91,11 @@ def export_twin(store: TwinStore, epoch: str, out: Path, fmt: str | None = None)
             flat = store.flatten(epoch, Path(tmp) / "flat.usdc")
             return [render_file(flat, out if out.suffix.lower() == ".png" else out.with_suffix(".png"))]
     elements = store.read_epoch(epoch)
+    if fmt in ("las", "laz"):
+        from .export_las import export_las
+
+        folder = out.with_suffix("") if out.suffix.lower() in (".las", ".laz") else out
+        return export_las(elements, folder, store.meters_per_unit(), compressed=fmt == "laz")
     if fmt == "obj":
         return [export_obj(elements, out if out.suffix.lower() == ".obj" else out.with_suffix(".obj"))]
     return export_ply(elements, out.with_suffix("") if out.suffix.lower() == ".ply" else out)

@@ -103,6 +103,11 @@ class TwinStore:
     def _root(self) -> Sdf.Layer:
         return open_layer(self.root_path)
 
+    def meters_per_unit(self) -> float:
+        """Metres per twin unit (the root's ``metersPerUnit``)."""
+        root = self._root()
+        return float(root.pseudoRoot.GetInfo("metersPerUnit")) if root.pseudoRoot.HasInfo("metersPerUnit") else 1.0
+
     def layer_digests(self) -> dict[str, str]:
         """The sha256 of each epoch layer as recorded in the root when it was written, by sublayer path."""
         data = self._root().customLayerData.get("gdt", {})

@@ -143,12 +143,15 @@ def diff(twin: Path, epoch_a: str, epoch_b: str, as_json: bool) -> None:
 @click.command()
 @click.argument("twin", type=click.Path(path_type=Path))
 @click.option("--epoch", help="Epoch id (default: the latest).")
-@click.option("--format", "fmt", type=click.Choice(["ply", "obj", "usdz", "usda", "usdc", "png"]), required=True,
-              help="ply: a folder with one PLY per element set; obj: one file; usdz/usda/usdc: flattened USD with "
-                   "the provenance of every epoch.")
+@click.option("--format", "fmt", type=click.Choice(["ply", "obj", "usdz", "usda", "usdc", "png", "las", "laz"]),
+              required=True,
+              help="ply: a folder with one PLY per element set; las/laz: a folder with one LAS 1.4 per point set, "
+                   "change state, score, p-value, uncertainty, source epoch and fusion reason as extra dimensions "
+                   "(CloudCompare scalar fields); obj: one file; usdz/usda/usdc: flattened USD with the provenance "
+                   "of every epoch.")
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="File (or folder for ply).")
 def export(twin: Path, epoch: str | None, fmt: str, output: Path) -> None:
-    """Export the twin at an epoch to PLY, OBJ or USD(Z)."""
+    """Export the twin at an epoch to PLY, LAS/LAZ, OBJ or USD(Z)."""
 
     from ..export import export_twin
 

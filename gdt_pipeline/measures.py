@@ -30,6 +30,7 @@ from .compiled import njit
 from .geometry import sample_surface
 from .plugins import StageContext, StageSpec
 from .types import Composite, Correspondences, Dataset, Scores
+from .types.uncertainty import take_rows, uncertainty_rows
 
 MeasureResult = tuple[np.ndarray, np.ndarray | None, np.ndarray]
 PairMeasure = Callable[["PairGroup", np.random.Generator], MeasureResult]
@@ -59,20 +60,6 @@ class PairGroup:
         return PairGroup(self.idx[sel], self.elements[sel], self.mu_q[sel] if mu_q is None else mu_q,
                          take_rows(self.u_q, sel), self.mu_r[sel] if mu_r is None else mu_r, take_rows(self.u_r, sel),
                          self.ref_items[sel], self.ref_elements[sel], None if self.normal is None else self.normal[sel])
-
-
-def uncertainty_rows(u: Any) -> int:
-    """Rows an uncertainty model holds (1: one model shared by every element)."""
-    for name in ("cov", "half_widths", "weights"):
-        arr = getattr(u, name, None)
-        if arr is not None:
-            return arr.shape[0]
-    raise TypeError(type(u).__name__)
-
-
-def take_rows(u: Any, idx: np.ndarray) -> Any:
-    """The rows ``idx`` of an uncertainty model (a shared one-row model stays as it is)."""
-    return u if uncertainty_rows(u) == 1 else u.take(idx)
 
 
 def _expand(u: Any, n: int) -> Any:

@@ -43,6 +43,7 @@ from ..provenance import (
     cache_key,
     package_versions,
 )
+from ..tiling.grid import extent
 from ..twin import composite_to_elements
 from ..types import Composite, Dataset, EpochInfo, Registration
 from ..workflow import load_workflow
@@ -301,10 +302,10 @@ def _write_epoch(store: TwinStore, prov: EpochProvenance, slots: dict[str, Any],
 
 def _frame_origin(recent: list[Dataset]) -> tuple[float, float, float] | None:
     """The centre of the epoch's input data (rounded to 1 mm in metres): the origin its stages share."""
-    pts = [ds.points for ds in recent if len(ds.points)]
-    if not pts:
+    if not any(len(ds.points) for ds in recent):
         return None
-    centre = (np.min([p.min(axis=0) for p in pts], axis=0) + np.max([p.max(axis=0) for p in pts], axis=0)) / 2
+    lower, upper = extent([ds.points for ds in recent])
+    centre = (lower + upper) / 2
     return (float(np.round(centre[0], 3)), float(np.round(centre[1], 3)), float(np.round(centre[2], 3)))
 
 

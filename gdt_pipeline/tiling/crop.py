@@ -25,27 +25,19 @@ from ..types import (
     Scores,
     Uncertainty,
 )
+from ..types.uncertainty import take_rows, uncertainty_rows
 
 IndexMap = Callable[[np.ndarray], np.ndarray]
 
 
-def rows_of(u: Uncertainty) -> int:
-    """Rows an uncertainty model holds (1: one model shared by every element)."""
-    if isinstance(u, GaussianUncertainty):
-        return u.cov.shape[0]
-    if isinstance(u, BoxUncertainty):
-        return u.half_widths.shape[0]
-    return u.weights.shape[0]
-
-
 def take_uncertainty(u: Uncertainty | None, rows: np.ndarray) -> Uncertainty | None:
-    """The rows ``rows`` of a model (a shared one-row model stays as it is)."""
-    return u if u is None or rows_of(u) == 1 else u.take(rows)
+    """The rows ``rows`` of a model, if there is one (a shared one-row model stays as it is)."""
+    return None if u is None else take_rows(u, rows)
 
 
 def _expanded(u: Uncertainty, n: int) -> Uncertainty:
     """A shared one-row model repeated for ``n`` elements (``take`` keeps a shared model shared)."""
-    if rows_of(u) == n:
+    if uncertainty_rows(u) == n:
         return u
     if isinstance(u, GaussianUncertainty):
         return GaussianUncertainty(np.repeat(u.cov, n, axis=0))
@@ -83,15 +75,15 @@ def concat_uncertainty(parts: Sequence[Uncertainty], counts: Sequence[int]) -> U
     first = parts[0]
     if any(type(p) is not type(first) for p in parts):
         raise ValueError(f"tiles returned different uncertainty families: {sorted({type(p).__name__ for p in parts})}")
-    if all(rows_of(p) == 1 for p in parts) and all(_same(p, first) for p in parts[1:]):
+    if all(uncertainty_rows(p) == 1 for p in parts) and all(_same(p, first) for p in parts[1:]):
         return first
     full = [_expanded(p, n) for p, n in zip(parts, counts, strict=True) if n]
     if isinstance(first, GaussianUncertainty):
         return GaussianUncertainty(np.concatenate([p.cov for p in full]))
     if isinstance(first, BoxUncertainty):
         rotated = any(p.rotation is not None for p in full)
-        rot = np.concatenate([np.broadcast_to(p.rotation if p.rotation is not None else np.eye(3), (rows_of(p), 3, 3))
-                              for p in full]) if rotated else None
+        rot = np.concatenate([np.broadcast_to(np.eye(3) if p.rotation is None else p.rotation,
+                                              (uncertainty_rows(p), 3, 3)) for p in full]) if rotated else None
         return BoxUncertainty(np.concatenate([p.half_widths for p in full]), rot)
     k = max(p.weights.shape[1] for p in full)
     full = [_pad_mixture(p, k) for p in full]

@@ -16,7 +16,8 @@ import numpy as np
 
 from ..errors import GdtError
 from ..types import Change, Correspondences, Dataset, MixtureUncertainty, Scores
-from .crop import concat_uncertainty, rows_of
+from ..types.uncertainty import uncertainty_rows
+from .crop import concat_uncertainty
 
 
 @dataclass(frozen=True)
@@ -44,7 +45,7 @@ def merge_recent(ds: Dataset, pieces: Sequence[Dataset], order: ElementOrder) ->
     if any(p.uncertainty is None for p in pieces) or not pieces:
         return ds
     unc = concat_uncertainty([p.uncertainty for p in pieces], [p.n_elements for p in pieces])
-    if rows_of(unc) != 1:
+    if uncertainty_rows(unc) != 1:
         unc = unc.take(order.position)
     return dataclasses.replace(ds, uncertainty=unc)
 

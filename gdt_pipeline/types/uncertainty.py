@@ -291,3 +291,17 @@ class MixtureUncertainty:
 
 
 Uncertainty = GaussianUncertainty | BoxUncertainty | MixtureUncertainty
+
+
+def uncertainty_rows(u: Uncertainty) -> int:
+    """Rows an uncertainty model holds (1: one model shared by every element)."""
+    for name in ("cov", "half_widths", "weights"):
+        arr = getattr(u, name, None)
+        if arr is not None:
+            return arr.shape[0]
+    raise TypeError(type(u).__name__)
+
+
+def take_rows(u: Uncertainty, idx: np.ndarray) -> Uncertainty:
+    """The rows ``idx`` of an uncertainty model (a shared one-row model stays as it is)."""
+    return u if uncertainty_rows(u) == 1 else u.take(idx)

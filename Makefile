@@ -45,7 +45,7 @@ system-deps:
 $(STAMP): pyproject.toml plugins/gdt-c2c/pyproject.toml plugins/gdt-m3c2/pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[dev,eval]" -e plugins/gdt-c2c -e plugins/gdt-m3c2
+	$(BIN)/python -m pip install -q -e ".[dev,eval,cad,bim]" -e plugins/gdt-c2c -e plugins/gdt-m3c2
 	@touch $(STAMP)
 
 clean:

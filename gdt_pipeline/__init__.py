@@ -32,6 +32,7 @@ from .types import (
     Registration,
     Scores,
     Segment,
+    SensorPose,
     SourceInfo,
     Uncertainty,
 )
@@ -65,6 +66,7 @@ __all__ = [
     "Registration",
     "Scores",
     "Segment",
+    "SensorPose",
     "SourceInfo",
     "StageContext",
     "StageError",

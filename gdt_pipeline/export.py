@@ -1,54 +1,33 @@
-"""Export the twin at an epoch: flat USD, USDZ, PLY (one file per element set), OBJ, LAS/LAZ with the per-point
-values (``export_las``), or a PNG picture.
+"""Export the twin at an epoch: flat USD, USDZ, PLY (one file per element set, ``export_ply``), OBJ, LAS/LAZ
+(``export_las``), or a PNG picture.
 
-PLY and OBJ carry the composite only (hidden elements are left out) with change colours; USD keeps everything,
-the history included. Point sets go through Open3D (PLY with double coordinates, so georeferenced clouds keep their
-precision); meshes through trimesh.
+PLY and LAS/LAZ carry the per-element values as scalar fields, and a scope: the composite (every visible element at
+the epoch) or only the visible elements the epoch itself supplied. OBJ carries the composite, geometry only; USD keeps
+everything, the history included.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
 import numpy as np
 
-from twin_store import STATE_COLORS, ElementSet, TwinStore
+from twin_store import ElementSet, TwinStore
 
 from .errors import GdtError
+from .export_ply import export_ply
 
 FORMATS = ("usda", "usdc", "usdz", "ply", "obj", "png", "las", "laz")
+SCOPES = ("composite", "epoch")
+SCOPED_FORMATS = ("ply", "las", "laz")  # the exports that carry source_epoch, so a file of one epoch's part reads right
 
 
-def _colors(es: ElementSet) -> np.ndarray:
-    return np.asarray(es.display_color if es.display_color is not None else STATE_COLORS[es.state], dtype=np.float64)
-
-
-def export_ply(elements: list[ElementSet], out_dir: Path) -> list[Path]:
-    """One PLY per element set with its visible elements: meshes with face colours, points with vertex colours."""
-    import open3d as o3d
-    import trimesh
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = []
-    for es in elements:
-        vis = np.asarray(es.visible, dtype=bool)
-        if not vis.any():
-            continue
-        path = out_dir / f"{es.key}.ply"
-        tmp = out_dir / f".{es.key}.tmp-{os.getpid()}.ply"
-        if es.kind == "mesh":
-            mesh = trimesh.Trimesh(es.points, es.faces[vis], process=False)
-            mesh.visual.face_colors = np.c_[np.round(_colors(es)[vis] * 255), np.full(vis.sum(), 255)].astype(np.uint8)
-            tmp.write_bytes(mesh.export(file_type="ply"))
-        else:
-            pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(es.points[vis]))
-            pcd.colors = o3d.utility.Vector3dVector(_colors(es)[vis])
-            if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False):
-                raise GdtError(f"could not write {tmp}")
-        os.replace(tmp, path)
-        written.append(path)
-    return written
+def supplied_by(elements: list[ElementSet], epoch_index: int) -> list[ElementSet]:
+    """The sets with only the visible elements the epoch at ``epoch_index`` (its place in the twin) supplied left."""
+    return [dataclasses.replace(es, visible=np.asarray(es.visible, dtype=bool)
+                                & (np.asarray(es.source_epoch) == epoch_index)) for es in elements]
 
 
 def export_obj(elements: list[ElementSet], out: Path) -> Path:
@@ -72,11 +51,16 @@ def export_obj(elements: list[ElementSet], out: Path) -> Path:
     return out
 
 
-def export_twin(store: TwinStore, epoch: str, out: Path, fmt: str | None = None) -> list[Path]:
-    """Export the twin at ``epoch`` to ``out`` in ``fmt`` (default: from the file extension)."""
+def export_twin(store: TwinStore, epoch: str, out: Path, fmt: str | None = None, scope: str = "composite"
+                ) -> list[Path]:
+    """Export the twin at ``epoch`` to ``out`` in ``fmt`` (default: from the file extension) for ``scope``."""
     fmt = (fmt or out.suffix.lstrip(".")).lower()
     if fmt not in FORMATS:
         raise GdtError(f"unknown export format {fmt!r} for {out} (choose one of: {', '.join(FORMATS)})")
+    if scope not in SCOPES:
+        raise GdtError(f"unknown export scope {scope!r} (choose one of: {', '.join(SCOPES)})")
+    if scope != "composite" and fmt not in SCOPED_FORMATS:
+        raise GdtError(f"the export scope {scope!r} applies to {', '.join(SCOPED_FORMATS)} only, not {fmt}")
     if fmt in ("usda", "usdc"):
         target = out if out.suffix.lower() == f".{fmt}" else out.with_suffix(f".{fmt}")
         return [store.flatten(epoch, target)]
@@ -91,6 +75,9 @@ def export_twin(store: TwinStore, epoch: str, out: Path, fmt: str | None = None)
             flat = store.flatten(epoch, Path(tmp) / "flat.usdc")
             return [render_file(flat, out if out.suffix.lower() == ".png" else out.with_suffix(".png"))]
     elements = store.read_epoch(epoch)
+    if scope == "epoch":
+        # source_epoch holds the epoch's index in the run, which is its place in the twin (a run writes all its epochs)
+        elements = supplied_by(elements, store.epochs().index(epoch))
     if fmt in ("las", "laz"):
         from .export_las import export_las
 
@@ -98,4 +85,4 @@ def export_twin(store: TwinStore, epoch: str, out: Path, fmt: str | None = None)
         return export_las(elements, folder, store.meters_per_unit(), compressed=fmt == "laz")
     if fmt == "obj":
         return [export_obj(elements, out if out.suffix.lower() == ".obj" else out.with_suffix(".obj"))]
-    return export_ply(elements, out.with_suffix("") if out.suffix.lower() == ".ply" else out)
+    return export_ply(elements, out.with_suffix("") if out.suffix.lower() == ".ply" else out, store.meters_per_unit())

@@ -1,7 +1,8 @@
 """LAS/LAZ 1.4 export of the twin's point sets for CloudCompare and GIS tools: one file per point set, its visible
-points (the composite at the epoch), colours by change state, and the per-point values as named extra dimensions
-(``change_state``, ``change_score``, ``p_value``, ``uncertainty``, ``source_epoch``, ``fusion_reason``,
-``fusion_ratio``) that CloudCompare shows as scalar fields.
+points (the composite at the epoch, or the part the epoch supplied: the scope of ``export_twin``), colours by change
+state, and the per-point values as named extra dimensions (``change_state``, ``change_score``, ``p_value``,
+``uncertainty``, ``source_epoch``, ``fusion_reason``, ``fusion_ratio``; the table in ``export_values``, shared with
+the PLY export) that CloudCompare shows as scalar fields.
 
 Coordinates are stored as integers of 0.1 mm (in the twin's units: 1e-4 for metres, 0.1 for millimetres) from an
 offset at the set's lower corner, so georeferenced clouds keep their precision.
@@ -17,32 +18,9 @@ import numpy as np
 from twin_store import STATE_COLORS, ElementSet
 
 from .errors import GdtError
+from .export_values import VALUE_FIELDS, element_values
 
 RESOLUTION_M = 1e-4
-# name, numpy type, description (LAS extra-bytes descriptions hold 32 characters)
-EXTRA_DIMS = (
-    ("change_state", np.uint8, "gdt:changeState code (0 same)"),
-    ("change_score", np.float32, "dissimilarity score (NaN: none)"),
-    ("p_value", np.float32, "p-value of the test (NaN: none)"),
-    ("uncertainty", np.float32, "RMS sigma of the position"),
-    ("source_epoch", np.int32, "index of the epoch it came from"),
-    ("fusion_reason", np.uint8, "fusion reason code"),
-    ("fusion_ratio", np.float32, "sqrt det cov ratio new/known"),
-)
-
-
-def _values(es: ElementSet, vis: np.ndarray) -> dict[str, np.ndarray]:
-    n = int(vis.sum())
-    nan = np.full(n, np.nan, dtype=np.float32)
-    return {
-        "change_state": np.asarray(es.state)[vis],
-        "change_score": np.asarray(es.score, dtype=np.float32)[vis],
-        "p_value": nan if es.p_value is None else np.asarray(es.p_value, dtype=np.float32)[vis],
-        "uncertainty": np.asarray(es.uncertainty_summary, dtype=np.float32)[vis],
-        "source_epoch": np.asarray(es.source_epoch)[vis],
-        "fusion_reason": np.zeros(n, np.uint8) if es.reason is None else np.asarray(es.reason)[vis],
-        "fusion_ratio": nan if es.reason_ratio is None else np.asarray(es.reason_ratio, dtype=np.float32)[vis],
-    }
 
 
 def write_las(es: ElementSet, path: Path, meters_per_unit: float) -> Path:
@@ -56,12 +34,12 @@ def write_las(es: ElementSet, path: Path, meters_per_unit: float) -> Path:
     header.scales = np.full(3, scale)
     header.offsets = np.floor(pts.min(axis=0) / scale) * scale if len(pts) else np.zeros(3)
     header.add_extra_dims([laspy.ExtraBytesParams(name=name, type=dtype, description=doc)
-                           for name, dtype, doc in EXTRA_DIMS])
+                           for name, dtype, doc in VALUE_FIELDS])
     las = laspy.LasData(header)
     las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
     rgb = np.round(STATE_COLORS[np.minimum(np.asarray(es.state)[vis], len(STATE_COLORS) - 1)] * 65535)
     las.red, las.green, las.blue = (rgb[:, k].astype(np.uint16) for k in range(3))
-    for name, values in _values(es, vis).items():
+    for name, values in element_values(es, vis).items():
         setattr(las, name, values)
     tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
     try:

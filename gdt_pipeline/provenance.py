@@ -74,6 +74,9 @@ class InputRecord:
     viewpoints: list | None = None
     elements: int = 0
     notes: dict[str, Any] = field(default_factory=dict)
+    # per dataset the file gave (one, or one per scan or part): name, kind, elements, meta (part name, IFC GlobalId),
+    # and the station it was given: pose {source, origin, position, ...} (pose file, file header or workflow)
+    datasets: list[dict[str, Any]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)

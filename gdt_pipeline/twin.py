@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from itertools import pairwise
+from typing import Any
+
 import numpy as np
 
-from twin_store import ElementSet
+from twin_store import ElementSet, TwinStore
 
-from .types import BoxUncertainty, Composite, GaussianUncertainty, MixtureUncertainty
+from .types import BoxUncertainty, ChangeState, Composite, GaussianUncertainty, MixtureUncertainty
 
 _TRIU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))  # xx xy xz yy yz zz
 
@@ -44,9 +47,39 @@ def composite_to_elements(composite: Composite) -> list[ElementSet]:
                               visible=it.visible,
                               p_value=None if it.p_value is None else it.p_value.astype(np.float32),
                               reason=it.reason, reason_ratio=it.reason_ratio.astype(np.float32),
-                              area_seen=_f32(it.area_seen), area_removed=_f32(it.area_removed)))
+                              area_seen=_f32(it.area_seen), area_removed=_f32(it.area_removed),
+                              intensity=_f32(ds.fields.get("intensity")), scan_color=_f32(ds.fields.get("color")),
+                              identity=dict(ds.meta) or None))
     return out
 
 
 def _f32(values: np.ndarray | None) -> np.ndarray | None:
     return None if values is None else values.astype(np.float32)
+
+
+def identified_changes(store: TwinStore, epoch_ids: list[str]) -> dict[str, list[dict[str, Any]]]:
+    """Per epoch, the sets with an identity outside the twin (an IFC element, a named CAD part) that lost elements in
+    it: their key, identity, and how many of the elements visible before were removed (hidden, state removed)."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    for before_id, epoch_id in pairwise(epoch_ids):
+        ids = store.identities(epoch_id)
+        if not ids:
+            continue
+        before = {es.key: es for es in store.read_epoch(before_id, ids)}
+        for es in store.read_epoch(epoch_id, ids):
+            old = before.get(es.key)
+            if old is None or not np.any(old.visible):
+                continue
+            gone = (np.asarray(es.state) == ChangeState.REMOVED) & ~np.asarray(es.visible) & np.asarray(old.visible)
+            if gone.any():
+                out.setdefault(epoch_id, []).append(
+                    {"key": es.key, "identity": ids[es.key], "kind": es.kind, "removed": int(gone.sum()),
+                     "of": int(np.sum(old.visible))})
+    return out
+
+
+def identity_label(identity: dict[str, str]) -> str:
+    """How a set is named to people: its class, name and GlobalId (IFC) or part name, as known."""
+    parts = [identity.get("ifc_class", ""), repr(identity["name"]) if identity.get("name") else "",
+             f"GlobalId {identity['global_id']}" if identity.get("global_id") else ""]
+    return " ".join(p for p in parts if p) or ", ".join(f"{k}={v}" for k, v in identity.items())

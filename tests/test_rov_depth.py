@@ -12,9 +12,9 @@ import trimesh
 
 from gdt_pipeline import Composite, Dataset, GaussianUncertainty
 from gdt_pipeline.plugins import load_registry
+from gdt_pipeline.runner import read_pose_file
 from gdt_pipeline.sensors import SensorProfile
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
-from gdt_pipeline.types import SourceInfo
 from stages.rov._samples import area_samples, sub_centroids
 from tests.rov_helpers import cad_item, stage_ctx
 
@@ -126,9 +126,9 @@ def test_empty_space_counts_as_seen_through_only_within_a_pose_files_range(regis
     assert not rov.in_view["E0_cube"].any()  # no evidence either way: outside the region of view
     pose = {"viewpoint": [0, 0, 0], "target": [2.5, 0, 0], "scanner": {"kind": "pinhole", "fov_deg": 30.0,
                                                                        "aspect": 1.0, "max_range": 10.0}}
-    path = tmp_path / "scan.ply"
-    path.with_name("scan_pose.json").write_text(json.dumps(pose))
-    scan = dataclasses.replace(scan, source=SourceInfo(path=str(path), sha256="0" * 64))
+    pose_file = tmp_path / "scan_pose.json"
+    pose_file.write_text(json.dumps(pose))
+    scan = dataclasses.replace(scan, pose=read_pose_file(pose_file))  # as the engine gives it to every stage
     ctx = stage_ctx(registry, "sensor_frustum", {}, [scan], reference, tmp_path)
     rov = registry.get("sensor_frustum").run(ctx)["rov"]
     assert rov.in_view["E0_cube"][facing].all() and not rov.matched["E0_cube"][facing].any()

@@ -48,6 +48,9 @@ class ElementSet:
     reason_ratio: np.ndarray | None = None  # (E,) the numbers behind the reason: √det Σ new / known, NaN if none
     area_seen: np.ndarray | None = None  # (E,) share of the element's area a station saw, NaN where not judged
     area_removed: np.ndarray | None = None  # (E,) share of the element's area seen through (removed)
+    intensity: np.ndarray | None = None  # (E,) return intensity from the scan file
+    scan_color: np.ndarray | None = None  # (E,3) colour from the scan file, 0..1
+    identity: dict[str, str] | None = None  # who the set is outside the twin (IFC GlobalId and class, part name)
 
     def __post_init__(self) -> None:
         if not Tf.IsValidIdentifier(self.key):
@@ -70,7 +73,7 @@ class ElementSet:
         shapes = {"uncertainty_summary": (n,), "state": (n,), "score": (n,), "source_epoch": (n,), "visible": (n,),
                   "covariance": (n, 6), "half_widths": (n, 3), "rotation": (n, 3, 3), "ids": (n,),
                   "display_color": (n, 3), "p_value": (n,), "reason": (n,), "reason_ratio": (n,),
-                  "area_seen": (n,), "area_removed": (n,)}
+                  "area_seen": (n,), "area_removed": (n,), "intensity": (n,), "scan_color": (n, 3)}
         for name, shape in shapes.items():
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
@@ -130,6 +133,11 @@ def primvar_values(es: ElementSet) -> Primvars:
                             ("area_removed", "gdt:areaRemoved", names.DOC_AREA_REMOVED)):
         if getattr(es, attr) is not None:
             out[name] = (types.FloatArray, interp, np.asarray(getattr(es, attr), dtype=np.float32), 1, doc)
+    if es.intensity is not None:
+        out["gdt:intensity"] = (types.FloatArray, interp, np.asarray(es.intensity, np.float32), 1, names.DOC_INTENSITY)
+    if es.scan_color is not None:
+        out["gdt:scanColor"] = (types.Color3fArray, interp, np.asarray(es.scan_color, np.float32), 1,
+                                names.DOC_SCAN_COLOR)
     if es.rotation is not None:
         out["gdt:rotation"] = (types.FloatArray, interp, np.asarray(es.rotation, dtype=np.float32).reshape(-1), 9,
                                names.DOC_ROTATION)
@@ -186,6 +194,8 @@ def define_element_set(stage: Usd.Stage, es: ElementSet) -> None:
     geom.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*map(float, origin)))
     if not np.any(es.visible):
         geom.MakeInvisible()
+    if es.identity:
+        geom.GetPrim().SetCustomDataByKey(names.IDENTITY_KEY, {str(k): str(v) for k, v in es.identity.items()})
     api = UsdGeom.PrimvarsAPI(geom.GetPrim())
     model = api.CreatePrimvar("gdt:uncertaintyModel", Sdf.ValueTypeNames.Token, UsdGeom.Tokens.constant)
     model.Set(es.uncertainty_model)
@@ -293,4 +303,11 @@ def read_element_set(prim: Usd.Prim) -> ElementSet:
         source_epoch=pv("gdt:sourceEpoch", np.int32), visible=pv("gdt:visible", bool), ids=ids,
         p_value=pv("gdt:pValue", np.float32), reason=pv("gdt:fusionReason", np.uint8),
         reason_ratio=pv("gdt:fusionRatio", np.float32), area_seen=pv("gdt:areaSeen", np.float32),
-        area_removed=pv("gdt:areaRemoved", np.float32))
+        area_removed=pv("gdt:areaRemoved", np.float32), intensity=pv("gdt:intensity", np.float32),
+        scan_color=pv("gdt:scanColor", np.float32, (-1, 3)), identity=identity_of(prim))
+
+
+def identity_of(prim: Usd.Prim) -> dict[str, str] | None:
+    """A set's identity outside the twin (customData ``gdt:identity``), None when it has none."""
+    value = prim.GetCustomDataByKey(names.IDENTITY_KEY)
+    return {str(k): str(v) for k, v in value.items()} if value else None

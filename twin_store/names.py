@@ -48,3 +48,7 @@ DOC_ROTATION = "Box axes per element: a row-major 3x3 rotation whose columns are
 
 # The run record a `gdt run` writes into the twin folder (seed, packages, cache keys, layer sha256s); the twin owns it.
 RUN_LOCK_NAME = "gdt.lock"
+DOC_INTENSITY = "Return intensity per element as the scan file gave it (E57, LAS), in the file's own scale."
+DOC_SCAN_COLOR = "Colour per element as the scan file gave it (E57, LAS RGB), 0..1 (displayColor shows the change)."
+# customData key of a set's identity outside the twin: part name, IFC GlobalId and class, E57 scan guid
+IDENTITY_KEY = "gdt:identity"

@@ -17,14 +17,14 @@ import contextlib
 import json
 import os
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from . import guides
-from .elements import ElementSet, define_element_set, override_element_set, read_element_set
+from .elements import ElementSet, define_element_set, identity_of, override_element_set, read_element_set
 from .errors import TwinStoreError
 from .history import EpochRecord, SetDiff, count_states, epoch_record, set_diff
 from .integrity import LayerDigests, run_lock_problems
@@ -256,11 +256,22 @@ class TwinStore:
         """The region of view stored with ``epoch_id`` (points, faces), or None when the epoch has none."""
         return guides.read_region_of_view(self._stage_upto(self._epochs_upto(epoch_id)), epoch_id)
 
-    def read_epoch(self, epoch_id: str) -> list[ElementSet]:
-        """The composite as it was at ``epoch_id`` (only the layers up to it are composed)."""
+    def read_epoch(self, epoch_id: str, keys: Iterable[str] | None = None) -> list[ElementSet]:
+        """The composite as it was at ``epoch_id`` (only the layers up to it are composed); only the sets named in
+        ``keys`` when given."""
         stage = self._stage_upto(self._epochs_upto(epoch_id))
         twin = stage.GetPrimAtPath(TWIN_PRIM)
-        return [read_element_set(child) for child in twin.GetChildren()] if twin else []
+        wanted = None if keys is None else set(keys)
+        return [read_element_set(child) for child in (twin.GetChildren() if twin else [])
+                if wanted is None or child.GetName() in wanted]
+
+    def identities(self, epoch_id: str) -> dict[str, dict[str, str]]:
+        """Per set that has one, its identity outside the twin (IFC GlobalId and class, part name) at ``epoch_id``,
+        read without the sets' arrays."""
+        stage = self._stage_upto(self._epochs_upto(epoch_id))
+        twin = stage.GetPrimAtPath(TWIN_PRIM)
+        found = {child.GetName(): identity_of(child) for child in (twin.GetChildren() if twin else [])}
+        return {key: ident for key, ident in found.items() if ident}
 
     def provenance(self, epoch_id: str) -> dict:
         """The provenance recorded with an epoch."""

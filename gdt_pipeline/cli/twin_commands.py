@@ -43,8 +43,11 @@ def counts_text(counts: dict[str, int]) -> str:
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @click.option("--provenance", is_flag=True, help="Print the full provenance of each epoch.")
 def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
-    """List the epochs of TWIN: when, from which inputs, and how many elements are unchanged/new/removed."""
+    """List the epochs of TWIN: when, from which inputs, how many elements are unchanged/new/removed, and which
+    identified parts (IFC elements by GlobalId, named CAD parts) an epoch found removed."""
     from twin_store import TwinStore
+
+    from ..twin import identified_changes, identity_label
 
     store = TwinStore.open(twin)
     records = store.history()  # every layer is checked against its recorded sha256 before it is read
@@ -57,9 +60,11 @@ def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
             click.echo(f"# epoch {r.id}")
             click.echo(yaml.safe_dump(r.provenance, sort_keys=False, default_flow_style=None, width=118))
         return
+    identified = identified_changes(store, [r.id for r in records])
     if as_json:
         click.echo(json.dumps([{"epoch": r.id, "index": r.index, "role": r.role, "started": r.started,
                                 "finished": r.finished, "inputs": r.inputs, "counts": r.counts,
+                                "identified_removals": identified.get(r.id, []),
                                 **({"provenance": r.provenance} if provenance else {})} for r in records], indent=2))
         return
     table = Table(title=f"{twin} ({len(records)} epochs)")
@@ -73,6 +78,12 @@ def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
     for r in records:
         for line in moved_lines(store, r.id):
             click.echo(line)
+        for found in identified.get(r.id, []):
+            share = found["removed"] / found["of"]
+            what = "facets" if found["kind"] == "mesh" else "points"
+            verb = "removed" if share >= 0.5 else "partly removed"
+            click.echo(f"{r.id}: {verb}: {identity_label(found['identity'])} ({found['key']}: {found['removed']} "
+                       f"of its {found['of']} {what})")
 
 
 def moved_lines(store: Any, epoch_id: str) -> list[str]:
@@ -145,18 +156,24 @@ def diff(twin: Path, epoch_a: str, epoch_b: str, as_json: bool) -> None:
 @click.option("--epoch", help="Epoch id (default: the latest).")
 @click.option("--format", "fmt", type=click.Choice(["ply", "obj", "usdz", "usda", "usdc", "png", "las", "laz"]),
               required=True,
-              help="ply: a folder with one PLY per element set; las/laz: a folder with one LAS 1.4 per point set, "
-                   "change state, score, p-value, uncertainty, source epoch and fusion reason as extra dimensions "
-                   "(CloudCompare scalar fields); obj: one file; usdz/usda/usdc: flattened USD with the provenance "
-                   "of every epoch.")
-@click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="File (or folder for ply).")
-def export(twin: Path, epoch: str | None, fmt: str, output: Path) -> None:
+              help="ply: a folder with one PLY per element set (points, or mesh facets); las/laz: a folder with one "
+                   "LAS 1.4 per point set; both carry change state, score, p-value, uncertainty, source epoch and "
+                   "fusion reason and ratio as scalar fields (CloudCompare); obj: one file; usdz/usda/usdc: flattened "
+                   "USD with the provenance of every epoch.")
+@click.option("--scope", type=click.Choice(["composite", "epoch"]),
+              help="For ply, las and laz: composite (the default) writes every visible element at the epoch; epoch "
+                   "only the visible elements that this epoch supplied.")
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
+              help="File (or folder for ply, las and laz).")
+def export(twin: Path, epoch: str | None, fmt: str, scope: str | None, output: Path) -> None:
     """Export the twin at an epoch to PLY, LAS/LAZ, OBJ or USD(Z)."""
 
-    from ..export import export_twin
+    from ..export import SCOPED_FORMATS, export_twin
 
+    if scope is not None and fmt not in SCOPED_FORMATS:
+        raise click.UsageError(f"--scope applies to --format {', '.join(SCOPED_FORMATS)} only, not {fmt}")
     store, epoch = open_twin(twin, epoch)
-    for path in export_twin(store, epoch, output, fmt):
+    for path in export_twin(store, epoch, output, fmt, scope or "composite"):
         click.echo(f"wrote {path}")
 
 

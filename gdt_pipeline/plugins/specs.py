@@ -188,14 +188,17 @@ class ReaderSpec:
     """A file reader as a plugin declares it (hook ``gdt_readers``).
 
     Readers are not chained: the engine picks one per input by ``extensions`` and ``accepts(path, kind)`` (or the
-    input's ``reader:``) and calls ``read(request)``, which returns a :class:`~gdt_pipeline.types.Dataset`. The
-    engine then checks the geometry and applies the unit scale.
+    input's ``reader:``) and calls ``read(request)``, which returns a :class:`~gdt_pipeline.types.Dataset`, or a
+    list of them for a file of several scans or parts (each named by its part: the engine names it
+    ``<input>_<part>`` and keeps the part's name in ``meta``). A reader that knows the station of a scan (an E57
+    header) sets ``Dataset.pose`` with source ``"file_header"``. The engine then checks the geometry, applies the
+    unit scale and settles each dataset's station (pose file, file header, ``viewpoints:``, in that order).
     """
 
     name: str
     version: str
     extensions: tuple[str, ...]
-    read: Callable[[ReadRequest], Dataset]
+    read: Callable[[ReadRequest], Dataset | list[Dataset]]
     params: type[BaseModel] = BaseModel
     accepts: Callable[[Path, str | None], bool] | None = None
     description: str = ""

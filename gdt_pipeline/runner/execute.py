@@ -48,7 +48,7 @@ from ..twin import composite_to_elements
 from ..types import Composite, Dataset, EpochInfo, Registration
 from ..workflow import load_workflow
 from .inputs import input_digests, read_input, relative_to_workflow
-from .plan import EpochPlan, RunPlan, StagePlan, plan_from_workflow
+from .plan import EpochPlan, InputPlan, RunPlan, StagePlan, plan_from_workflow
 from .stage_call import run_stage, stage_rng, stage_survey
 from .staging import check_overwritable, recover, staging_path, swap_into_place, write_json_atomic
 from .tiled import TileSession, TilingOptions, chain_runs, run_tiles, tileable
@@ -203,7 +203,8 @@ def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, 
     info = EpochInfo(id=epoch.id, index=epoch.index, role=epoch.role, seed=plan.seed, workflow_dir=plan.base_dir,
                      units=plan.units)
     digests = [run.digests[(epoch.index, i)] for i in range(len(epoch.inputs))]
-    recent = [read_input(plan, run.registry, epoch, i, digests[i]) for i in range(len(epoch.inputs))]
+    read = [read_input(plan, run.registry, epoch, i, digests[i]) for i in range(len(epoch.inputs))]
+    recent = [ds for parts, _ in read for ds in parts]
     info = dataclasses.replace(info, origin=_frame_origin(recent))
     slots: dict[str, Any] = {"recent": recent, "epoch": info}
     if composite is not None:
@@ -220,8 +221,7 @@ def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, 
     prov = EpochProvenance(
         gdt_pipeline=run.packages.get("gdt-pipeline", "?"), workflow=run.workflow,
         epoch=EpochRecord(epoch.id, epoch.index, epoch.role), seed=plan.seed,
-        inputs=[_input_record(ds, inp.kind, inp.viewpoints) for ds, inp in zip(recent, epoch.inputs, strict=True)
-                if ds.source is not None],
+        inputs=[_input_record(parts, poses, inp) for (parts, poses), inp in zip(read, epoch.inputs, strict=True)],
         stages=records, registration=_registration_record(slots.get("registration")), packages=run.packages,
         python=platform.python_version(), started=started, finished=datetime.now(UTC).isoformat(timespec="seconds"),
         counts=slots["composite"].counts(), epoch_key=upstream[-1] if upstream else None)
@@ -309,11 +309,18 @@ def _frame_origin(recent: list[Dataset]) -> tuple[float, float, float] | None:
     return (float(np.round(centre[0], 3)), float(np.round(centre[1], 3)), float(np.round(centre[2], 3)))
 
 
-def _input_record(ds: Dataset, kind_hint: str | None, viewpoints: list | None) -> InputRecord:
-    src = ds.source
-    return InputRecord(path=src.path, sha256=src.sha256, name=ds.name, kind=ds.kind, kind_hint=kind_hint,
-                       reader=src.reader, units=src.units, scale=src.scale, viewpoints=viewpoints,
-                       elements=ds.n_elements, notes=dict(src.notes))
+def _input_record(parts: list[Dataset], poses: list[dict[str, Any]], inp: InputPlan) -> InputRecord:
+    """The provenance of one input: the file, the reader, and per dataset it gave its name, size, identity and the
+    station it was given (with where that came from)."""
+    src = parts[0].source
+    assert src is not None
+    datasets = [{"name": ds.name, "kind": ds.kind, "elements": ds.n_elements, **({"meta": ds.meta} if ds.meta else {}),
+                 **pose} for ds, pose in zip(parts, poses, strict=True)]
+    kinds = {ds.kind for ds in parts}
+    return InputRecord(path=src.path, sha256=src.sha256, name=inp.name, kind=kinds.pop() if len(kinds) == 1
+                       else "mixed", kind_hint=inp.kind, reader=src.reader, units=src.units, scale=src.scale,
+                       viewpoints=inp.viewpoints, elements=sum(ds.n_elements for ds in parts), notes=dict(src.notes),
+                       datasets=datasets)
 
 
 def _plain(value: Any) -> Any:

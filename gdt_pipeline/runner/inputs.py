@@ -5,14 +5,16 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ..errors import GdtError, InputError, StageError
-from ..names import UNITS
+from ..names import UNITS, identifier
 from ..plugins import ReaderSpec, ReadRequest, Registry
 from ..types import Dataset, SourceInfo
 from .plan import EpochPlan, RunPlan
+from .poses import resolve_poses
 
 
 def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
@@ -70,15 +72,32 @@ def _select_reader(path: Path, registry: Registry, kind: str | None, reader: str
     return cands[0]
 
 
-def read_dataset(path: Path, registry: Registry, *, name: str, role: str = "as-is", kind: str | None = None,
-                 reader: str | None = None, digest: str = "", where: str | None = None) -> Dataset:
-    """Read one file with the reader its extension (or ``reader``) selects, and check the geometry is usable."""
+def _named_parts(parts: list[Dataset], name: str, where: str) -> list[Dataset]:
+    """The datasets of a multi-part file named ``<input name>_<part>`` (unique, USD-safe); the part's own name is
+    kept in ``meta["name"]``."""
+    out, seen = [], set()
+    for k, ds in enumerate(parts):
+        if not isinstance(ds, Dataset):
+            raise StageError(f"{where}: part {k} read as {type(ds).__name__}, not a Dataset")
+        base = identifier(f"{name}_{ds.name}") if ds.name else f"{name}_{k}"
+        unique, n = base, 2
+        while unique in seen:
+            unique, n = f"{base}_{n}", n + 1
+        seen.add(unique)
+        out.append(dataclasses.replace(ds, name=unique, meta={"name": ds.name, **ds.meta}))
+    return out
+
+
+def read_datasets(path: Path, registry: Registry, *, name: str, role: str = "as-is", kind: str | None = None,
+                  reader: str | None = None, digest: str = "", where: str | None = None) -> list[Dataset]:
+    """Read one file with the reader its extension (or ``reader``) selects and check the geometry is usable: one
+    dataset, or one per part or scan of a file that holds several (named ``<name>_<part>``)."""
     where = where or str(path)
     _check_file(path, where)
     spec = _select_reader(path, registry, kind, reader, where)
     request = ReadRequest(path, name, role, kind, digest, params=spec.params())
     try:
-        ds = spec.read(request)
+        read = spec.read(request)
     except GdtError as exc:
         raise InputError(f"{where}: {_without_path(str(exc), path)}") from exc
     except (KeyboardInterrupt, SystemExit, GeneratorExit, MemoryError):
@@ -87,25 +106,45 @@ def read_dataset(path: Path, registry: Registry, *, name: str, role: str = "as-i
         # BaseException, not Exception: parsers written in Rust (lazrs through pyo3) raise a PanicException that
         # derives from BaseException, and a file that panics a parser is still bad input, not a bug of ours.
         raise InputError(f"{where}: reader {spec.name!r} failed: {type(exc).__name__}: {exc}") from exc
-    if not isinstance(ds, Dataset):
-        raise StageError(f"{where}: reader {spec.name!r} returned {type(ds).__name__}, not a Dataset")
-    check_dataset(ds, where)
-    return dataclasses.replace(ds, source=SourceInfo(path=str(path), sha256=digest, reader=spec.name,
-                                                     notes=dict(request.notes)))
+    if isinstance(read, list):
+        if not read:
+            raise InputError(f"{where}: reader {spec.name!r} found nothing to read in the file")
+        parts = _named_parts(read, name, where)
+    elif isinstance(read, Dataset):
+        parts = [read]
+    else:
+        raise StageError(f"{where}: reader {spec.name!r} returned {type(read).__name__}, not a Dataset")
+    for ds in parts:
+        check_dataset(ds, where if len(parts) == 1 else f"{where}, part {ds.meta.get('name', ds.name)!r}")
+    source = SourceInfo(path=str(path), sha256=digest, reader=spec.name, notes=dict(request.notes))
+    return [dataclasses.replace(ds, source=source) for ds in parts]
 
 
-def read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int, digest: str) -> Dataset:
-    """Input ``i_index`` of an epoch, read, checked and scaled to the twin's units."""
+def read_dataset(path: Path, registry: Registry, *, name: str, role: str = "as-is", kind: str | None = None,
+                 reader: str | None = None, digest: str = "", where: str | None = None) -> Dataset:
+    """Read a file that holds one dataset (:func:`read_datasets`); a file of several parts is an error."""
+    parts = read_datasets(path, registry, name=name, role=role, kind=kind, reader=reader, digest=digest, where=where)
+    if len(parts) != 1:
+        raise InputError(f"{where or path}: holds {len(parts)} datasets ({', '.join(d.name for d in parts[:5])}"
+                         f"{', ...' if len(parts) > 5 else ''}); one is expected here")
+    return parts[0]
+
+
+def read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int, digest: str
+               ) -> tuple[list[Dataset], list[dict[str, Any]]]:
+    """Input ``i_index`` of an epoch, read, checked and scaled to the twin's units, each dataset with its station
+    (:func:`resolve_poses`); and per dataset the record of where its pose came from."""
     inp = epoch.inputs[i_index]
-    ds = read_dataset(inp.path, registry, name=inp.name, role=epoch.role, kind=inp.kind, reader=inp.reader,
-                      digest=digest, where=f"epoch {epoch.id}, input {i_index} ({inp.path})")
+    where = f"epoch {epoch.id}, input {i_index} ({inp.path})"
+    parts = read_datasets(inp.path, registry, name=inp.name, role=epoch.role, kind=inp.kind, reader=inp.reader,
+                         digest=digest, where=where)
     scale = UNITS[inp.units] / UNITS[plan.units]
-    vps = None if inp.viewpoints is None else np.asarray(inp.viewpoints, dtype=np.float64) * scale
-    return dataclasses.replace(
-        ds, points=ds.points * scale if scale != 1.0 else ds.points, viewpoints=vps,
-        source=SourceInfo(path=relative_to_workflow(inp.path, plan.base_dir), sha256=digest, units=inp.units,
-                          scale=scale, reader=ds.source.reader if ds.source else "",
-                          notes=ds.source.notes if ds.source else {}))
+    source = SourceInfo(path=relative_to_workflow(inp.path, plan.base_dir), sha256=digest, units=inp.units,
+                        scale=scale, reader=parts[0].source.reader if parts[0].source else "",
+                        notes=parts[0].source.notes if parts[0].source else {})
+    scaled = [dataclasses.replace(ds, points=ds.points * scale if scale != 1.0 else ds.points, source=source)
+              for ds in parts]
+    return resolve_poses(scaled, inp.path, inp.viewpoints, scale, where)
 
 
 def input_digests(plan: RunPlan) -> dict[tuple[int, int], str]:

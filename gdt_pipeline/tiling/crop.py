@@ -95,10 +95,11 @@ def take_dataset(ds: Dataset, elements: np.ndarray) -> Dataset:
     """The elements ``elements`` (sorted) of a dataset: its points, or its facets on the vertices they use."""
     unc = take_uncertainty(ds.uncertainty, elements)
     if ds.faces is None:
-        return dataclasses.replace(ds, points=ds.points[elements], uncertainty=unc)
+        return dataclasses.replace(ds, points=ds.points[elements], uncertainty=unc, fields=ds.take_fields(elements))
     faces = ds.faces[elements]
     used, local = np.unique(faces, return_inverse=True)
-    return dataclasses.replace(ds, points=ds.points[used], faces=local.reshape(-1, 3), uncertainty=unc)
+    return dataclasses.replace(ds, points=ds.points[used], faces=local.reshape(-1, 3), uncertainty=unc,
+                               fields=ds.take_fields(elements))
 
 
 def in_box(ds: Dataset, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:

@@ -11,6 +11,7 @@ is treated as infinitely many points that share the facet's uncertainty (paper S
 from .arrays import broadcast_rows, frozen_array
 from .composite import Composite, CompositeItem, EpochInfo, Segment
 from .data import Change, Correspondences, Dataset, RegionOfView, Registration, Scores, SourceInfo
+from .pose import POSE_SOURCES, SensorPose
 from .states import ChangeState, FusionReason, Kind, Role
 from .uncertainty import (
     BOX_99,
@@ -22,7 +23,31 @@ from .uncertainty import (
     Uncertainty,
 )
 
-__all__ = ["BOX_99", "CHI2_3_99", "BoxUncertainty", "Change", "ChangeState", "Composite", "CompositeItem",
-           "Correspondences", "Dataset", "EpochInfo", "FusionReason", "GaussianUncertainty", "Kind",
-           "MixtureUncertainty", "Region99", "RegionOfView", "Registration", "Role", "Scores", "Segment", "SourceInfo",
-           "Uncertainty", "broadcast_rows", "frozen_array"]
+__all__ = [
+    "BOX_99",
+    "CHI2_3_99",
+    "POSE_SOURCES",
+    "BoxUncertainty",
+    "Change",
+    "ChangeState",
+    "Composite",
+    "CompositeItem",
+    "Correspondences",
+    "Dataset",
+    "EpochInfo",
+    "FusionReason",
+    "GaussianUncertainty",
+    "Kind",
+    "MixtureUncertainty",
+    "Region99",
+    "RegionOfView",
+    "Registration",
+    "Role",
+    "Scores",
+    "Segment",
+    "SensorPose",
+    "SourceInfo",
+    "Uncertainty",
+    "broadcast_rows",
+    "frozen_array",
+]

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from .arrays import frozen_array
+from .pose import SensorPose
 from .states import Kind, Role
 from .uncertainty import BoxUncertainty, GaussianUncertainty, MixtureUncertainty, Uncertainty
 
@@ -28,7 +29,13 @@ class SourceInfo:
 
 @dataclass(frozen=True)
 class Dataset:
-    """One geometry of one epoch: a point set ``points (N,3)`` or a triangle mesh ``points (V,3)`` + ``faces (F,3)``."""
+    """One geometry of one epoch: a point set ``points (N,3)`` or a triangle mesh ``points (V,3)`` + ``faces (F,3)``.
+
+    ``pose`` is the station that measured it (one source for every stage: pose file, file header or workflow, in
+    that order; ``viewpoints`` then holds its position). ``fields`` are per-element values a reader found (E57 or
+    LAS ``intensity`` (E,), ``color`` (E,3) in 0..1); ``meta`` what identifies the dataset outside the twin (a part's
+    name, an IFC GlobalId and class, an E57 scan's guid), written on its prim.
+    """
 
     name: str
     role: Role
@@ -37,6 +44,9 @@ class Dataset:
     source: SourceInfo | None = None
     uncertainty: Uncertainty | None = None
     viewpoints: np.ndarray | None = None
+    pose: SensorPose | None = None
+    fields: dict[str, np.ndarray] = field(default_factory=dict, compare=False, hash=False)
+    meta: dict[str, str] = field(default_factory=dict, compare=False, hash=False)
 
     def __post_init__(self) -> None:
         pts = frozen_array(self.points, np.float64, (None, 3), f"dataset {self.name!r} points")
@@ -49,6 +59,14 @@ class Dataset:
         if self.viewpoints is not None:
             vps = frozen_array(self.viewpoints, np.float64, (None, 3), f"dataset {self.name!r} viewpoints")
             object.__setattr__(self, "viewpoints", vps)
+        n = self.n_elements
+        for key, values in self.fields.items():
+            if len(values) != n:
+                raise ValueError(f"dataset {self.name!r}: field {key!r} has {len(values)} rows for {n} elements")
+
+    def take_fields(self, elements: np.ndarray) -> dict[str, np.ndarray]:
+        """The per-element fields at ``elements`` (for a subset of the dataset)."""
+        return {key: values[elements] for key, values in self.fields.items()}
 
     @property
     def kind(self) -> Kind:
@@ -101,7 +119,9 @@ class Dataset:
         elif isinstance(unc, MixtureUncertainty):
             unc = MixtureUncertainty(unc.weights, unc.means @ rot.T, rot @ unc.covs @ rot.T)
         vps = None if self.viewpoints is None else self.viewpoints @ rot.T + trans
-        return dataclasses.replace(self, points=self.points @ rot.T + trans, uncertainty=unc, viewpoints=vps)
+        pose = None if self.pose is None else self.pose.transformed(rot, trans)
+        return dataclasses.replace(self, points=self.points @ rot.T + trans, uncertainty=unc, viewpoints=vps,
+                                   pose=pose)
 
 
 @dataclass(frozen=True)

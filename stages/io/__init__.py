@@ -1,6 +1,7 @@
 """Readers: meshes through trimesh (OBJ/PLY/STL/OFF/GLB), point clouds (PLY and the XYZ family read here, PCD
-through Open3D) and airborne/terrestrial LiDAR through laspy (LAS/LAZ). The engine picks one per input by extension
-and ``accepts``, then checks what it returns (finite coordinates, not empty) and applies the unit scale.
+through Open3D), airborne/terrestrial LiDAR through laspy (LAS/LAZ) and scanner exchange files through pye57 (E57:
+one dataset per scan, with its station). The engine picks one per input by extension and ``accepts``, then checks
+what it returns (finite coordinates, not empty), applies the unit scale and settles each dataset's station.
 
 No parser is trusted with a bad file: each reader checks the file's declared sizes against its length before
 anything is allocated and checks what the parser returned against the file's own counts (``ply``, ``mesh``,
@@ -15,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from gdt_pipeline import Dataset, InputError, ReaderSpec, ReadRequest, hookimpl
 
+from .e57 import E57Params, read_e57
 from .las import read_las_points
 from .mesh import read_mesh
 from .ply_header import face_count
@@ -91,4 +93,7 @@ def gdt_readers() -> list[ReaderSpec]:
                    description="Point clouds: PLY and XYZ/XYZN/XYZRGB/PTS read and checked here, PCD through Open3D."),
         ReaderSpec(name="laspy_points", version=VERSION, params=LasParams, read=_read_las, extensions=(".las", ".laz"),
                    description="LAS/LAZ LiDAR point clouds through laspy (lazrs backend)."),
+        ReaderSpec(name="pye57_scans", version=VERSION, params=E57Params, read=read_e57, extensions=(".e57",),
+                   description="E57 scans through pye57: one dataset per scan, its station from the header, "
+                               "intensity and colour."),
     ]

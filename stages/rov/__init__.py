@@ -2,8 +2,9 @@
 does not show is called "removed" only where a sensor could have seen it.
 
 - ``sensor_frustum``: the bounding volume is the union of the sensors' frusta: per recent dataset with viewpoints,
-  a pinhole frustum from the scanner's pose file beside the input (``<scan>_pose.json``, as the simulator writes:
-  viewpoint, target, field of view, aspect, range), else the tightest pinhole frustum around the directions to the
+  a pinhole frustum from the dataset's station when it has a target and a pinhole scanner (a pose file beside the
+  input, ``<scan>_pose.json``, as the simulator writes: viewpoint, target, field of view, aspect, range; the engine
+  reads it for every stage), else the tightest pinhole frustum around the directions to the
   dataset's own points (plus a margin); near and far from the parameters or the data.
 - ``manual_box``: a user-given axis-aligned box, as the paper did for its experiments.
 

@@ -1,11 +1,9 @@
 """``sensor_frustum``: the region of view is the union of the sensors' frusta, per recent dataset with viewpoints: a
-pinhole frustum from the scanner's pose file beside the input, else the tightest pinhole frustum around the directions
-to the dataset's own points (plus a margin)."""
+pinhole frustum from the dataset's station when it states a target and a pinhole scanner (a pose file does), else the
+tightest pinhole frustum around the directions to the dataset's own points (plus a margin)."""
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -44,22 +42,6 @@ def _frustum_mesh(eye: np.ndarray, fwd: np.ndarray, u: tuple[float, float], v: t
     return verts, faces
 
 
-def _pose(ds: Dataset, workflow_dir: Path) -> dict[str, Any] | None:
-    """The scanner's pose file beside the dataset's input (``<scan>_pose.json``), when it has one with a target."""
-    if ds.source is None:
-        return None
-    path = Path(ds.source.path)
-    path = path if path.is_absolute() else workflow_dir / path
-    pose = path.with_name(path.stem + "_pose.json")
-    if not pose.is_file():
-        return None
-    try:
-        data = json.loads(pose.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{pose}: not a readable pose file: {exc}") from exc
-    return data if data.get("target") is not None and data.get("scanner") else None
-
-
 class Frustum(NamedTuple):
     """One sensor's frustum as a closed mesh, how it was found, the sensor position and its range when a pose file
     states it (nothing measured closer is empty space; 0 when unknown)."""
@@ -71,21 +53,22 @@ class Frustum(NamedTuple):
     free_range: float = 0.0
 
 
-def _dataset_frusta(ds: Dataset, p: FrustumParams, workflow_dir: Path) -> list[Frustum]:
-    """A dataset's frusta: one from its pose file, else one per viewpoint fitted around the directions to its
-    points."""
-    pose = _pose(ds, workflow_dir)
+def _dataset_frusta(ds: Dataset, p: FrustumParams) -> list[Frustum]:
+    """A dataset's frusta: one from its station's pinhole scanner, else one per viewpoint fitted around the directions
+    to its points."""
+    pose = ds.pose
     pts = ds.element_positions()
-    if pose is not None and (pose["scanner"].get("kind", "pinhole") == "pinhole"):
-        eye, target = np.asarray(pose["viewpoint"], float), np.asarray(pose["target"], float)
-        sc = pose["scanner"]
+    if pose is not None and pose.target is not None and pose.scanner.get("kind", "pinhole") == "pinhole" and all(
+            k in pose.scanner for k in ("fov_deg", "aspect", "max_range")):
+        eye, sc = pose.position, pose.scanner
         th = np.tan(np.radians(p.fov_deg or sc["fov_deg"]) / 2)
         tv = th / (p.aspect or sc["aspect"])
         far = p.far or float(sc["max_range"])
-        verts, faces = _frustum_mesh(eye, target - eye, (-th, th), (-tv, tv), p.near, far)
+        verts, faces = _frustum_mesh(eye, pose.target - eye, (-th, th), (-tv, tv), p.near, far)
         # a scanner's empty rays are empty space; a reconstructed mesh's holes are where its surface was not kept
         free = far if ds.kind == "points" else 0.0
-        return [Frustum(verts, faces, f"{ds.name}: pinhole frustum from its pose file", eye, free)]
+        return [Frustum(verts, faces, f"{ds.name}: pinhole frustum from its {pose.source.replace('_', ' ')} "
+                                      f"({pose.origin})", eye, free)]
     if ds.viewpoints is None or not len(pts):
         return []
     out = []
@@ -110,7 +93,7 @@ def sensor_frustum(ctx: StageContext) -> dict[str, Any]:
     """The union of the sensors' frusta, minus what recent data occludes."""
     frusta, owner = [], []
     for i, ds in enumerate(ctx["recent"]):
-        found = _dataset_frusta(ds, ctx.params, ctx.epoch.workflow_dir)
+        found = _dataset_frusta(ds, ctx.params)
         frusta += found
         owner += [i] * len(found)
     if not frusta:

@@ -146,7 +146,7 @@ def _input_plans(prov: EpochProvenance, base: Path, problems: list[str]) -> list
             problems.append(f"input {rec.path} has changed: sha256 {sha256_file(path)} is not the recorded "
                             f"{rec.sha256}")
         inputs.append(InputPlan(path=path, name=rec.name, kind=rec.kind_hint, reader=rec.reader, units=rec.units,
-                                viewpoints=rec.viewpoints, sha256=rec.sha256))
+                                viewpoints=rec.viewpoints, sha256=rec.sha256, params=rec.params))
     return inputs
 
 

@@ -16,5 +16,6 @@ Units = Literal[tuple(UNITS)]
 
 def identifier(stem: str) -> str:
     """A USD-safe identifier from a file stem: non-alphanumerics become ``_``, a leading digit gets a ``_``."""
-    out = "".join(ch if ch.isalnum() or ch == "_" else "_" for ch in stem)
+    # ASCII only: str.isalnum() passes "ü", which USD's identifiers refuse (an IFC wall named "Wand Süd")
+    out = "".join(ch if (ch.isascii() and ch.isalnum()) or ch == "_" else "_" for ch in stem)
     return out if out and not out[0].isdigit() else f"_{out}"

@@ -77,6 +77,7 @@ class InputRecord:
     # per dataset the file gave (one, or one per scan or part): name, kind, elements, meta (part name, IFC GlobalId),
     # and the station it was given: pose {source, origin, position, ...} (pose file, file header or workflow)
     datasets: list[dict[str, Any]] = field(default_factory=list)
+    params: dict[str, Any] | None = None  # the reader's parameters (the input's ``with:``), as validated
 
 
 @dataclass(frozen=True)

@@ -201,3 +201,18 @@ def test_scans_can_be_chosen_and_a_pose_file_cannot_serve_several(scene: Path, r
 
     with pytest.raises(InputError, match=r"two_pose\.json states one station but the file holds 2 datasets"):
         resolve_poses(read_datasets(copy, registry, name="two"), copy, None, 1.0, "here")
+
+
+def test_reader_parameters_come_from_the_inputs_with(scene: Path, registry: object, tmp_path: Path) -> None:
+    from gdt_pipeline.workflow import WorkflowError, load_workflow
+
+    text = WORKFLOW.format(twin=str(tmp_path / "one"), inputs="{path: stations.e57, with: {scans: [1]}}")
+    (scene / "one.yaml").write_text(textwrap.dedent(text))
+    twin = run_workflow(scene / "one.yaml", registry=registry).twin
+    assert [es.key for es in TwinStore.open(twin).read_epoch("E1")] == ["E0_cad", "E1_stations_east"]
+    record = TwinStore.open(twin).provenance("E1")["inputs"][0]
+    assert record["params"] == {"scans": [1]} and [d["name"] for d in record["datasets"]] == ["stations_east"]
+    (scene / "bad.yaml").write_text(textwrap.dedent(WORKFLOW.format(
+        twin="t", inputs="{path: stations.e57, with: {scan: [1]}}")))
+    with pytest.raises(WorkflowError, match=r"epochs\.1\.inputs\.0\.with\.scan: reader 'pye57_scans': Extra inputs"):
+        load_workflow(scene / "bad.yaml", registry)

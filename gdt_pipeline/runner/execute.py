@@ -320,7 +320,7 @@ def _input_record(parts: list[Dataset], poses: list[dict[str, Any]], inp: InputP
     return InputRecord(path=src.path, sha256=src.sha256, name=inp.name, kind=kinds.pop() if len(kinds) == 1
                        else "mixed", kind_hint=inp.kind, reader=src.reader, units=src.units, scale=src.scale,
                        viewpoints=inp.viewpoints, elements=sum(ds.n_elements for ds in parts), notes=dict(src.notes),
-                       datasets=datasets)
+                       datasets=datasets, params=inp.params)
 
 
 def _plain(value: Any) -> Any:

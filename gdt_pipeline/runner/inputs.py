@@ -8,12 +8,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from ..errors import GdtError, InputError, StageError
 from ..names import UNITS, identifier
 from ..plugins import ReaderSpec, ReadRequest, Registry
 from ..types import Dataset, SourceInfo
-from .plan import EpochPlan, RunPlan
+from .plan import EpochPlan, InputPlan, RunPlan
 from .poses import resolve_poses
 
 
@@ -88,14 +89,25 @@ def _named_parts(parts: list[Dataset], name: str, where: str) -> list[Dataset]:
     return out
 
 
+def reader_params(spec: ReaderSpec, params: dict[str, Any] | None, where: str) -> Any:
+    """A reader's validated parameters from an input's ``with:`` (its defaults when there is none)."""
+    try:
+        return spec.params.model_validate(params or {})
+    except ValidationError as exc:
+        what = "; ".join(f"with.{'.'.join(str(p) for p in e['loc'])}: {e['msg']}"
+                         for e in exc.errors(include_url=False))
+        raise InputError(f"{where}: reader {spec.name!r}: {what}") from None
+
+
 def read_datasets(path: Path, registry: Registry, *, name: str, role: str = "as-is", kind: str | None = None,
-                  reader: str | None = None, digest: str = "", where: str | None = None) -> list[Dataset]:
+                  reader: str | None = None, digest: str = "", where: str | None = None,
+                  params: dict[str, Any] | None = None) -> list[Dataset]:
     """Read one file with the reader its extension (or ``reader``) selects and check the geometry is usable: one
     dataset, or one per part or scan of a file that holds several (named ``<name>_<part>``)."""
     where = where or str(path)
     _check_file(path, where)
     spec = _select_reader(path, registry, kind, reader, where)
-    request = ReadRequest(path, name, role, kind, digest, params=spec.params())
+    request = ReadRequest(path, name, role, kind, digest, params=reader_params(spec, params, where))
     try:
         read = spec.read(request)
     except GdtError as exc:
@@ -121,13 +133,30 @@ def read_datasets(path: Path, registry: Registry, *, name: str, role: str = "as-
 
 
 def read_dataset(path: Path, registry: Registry, *, name: str, role: str = "as-is", kind: str | None = None,
-                 reader: str | None = None, digest: str = "", where: str | None = None) -> Dataset:
+                 reader: str | None = None, digest: str = "", where: str | None = None,
+                 params: dict[str, Any] | None = None) -> Dataset:
     """Read a file that holds one dataset (:func:`read_datasets`); a file of several parts is an error."""
-    parts = read_datasets(path, registry, name=name, role=role, kind=kind, reader=reader, digest=digest, where=where)
+    parts = read_datasets(path, registry, name=name, role=role, kind=kind, reader=reader, digest=digest, where=where,
+                          params=params)
     if len(parts) != 1:
         raise InputError(f"{where or path}: holds {len(parts)} datasets ({', '.join(d.name for d in parts[:5])}"
                          f"{', ...' if len(parts) > 5 else ''}); one is expected here")
     return parts[0]
+
+
+def _data_units(parts: list[Dataset], inp: InputPlan, where: str) -> str:
+    """The units an input's coordinates are in: those its reader states (``req.report(units=...)``: E57 is metres by
+    the standard, a CAD reader converts the file's own length unit), else the input's ``units:``. A ``units:``
+    written on the input that differs from the reader's contradicts the file: an error naming both."""
+    stated = parts[0].source.notes.get("units") if parts[0].source else None
+    if stated is None:
+        return inp.units
+    if stated not in UNITS:
+        raise StageError(f"{where}: the reader states units {stated!r}, not one of {', '.join(UNITS)}")
+    if inp.units_given and inp.units != stated:
+        raise InputError(f"{where}: `units: {inp.units}` contradicts the reader, which returns the data in {stated!r} "
+                         f"(the file's own length unit, converted): remove `units:` from this input")
+    return stated
 
 
 def read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int, digest: str
@@ -137,9 +166,10 @@ def read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int
     inp = epoch.inputs[i_index]
     where = f"epoch {epoch.id}, input {i_index} ({inp.path})"
     parts = read_datasets(inp.path, registry, name=inp.name, role=epoch.role, kind=inp.kind, reader=inp.reader,
-                         digest=digest, where=where)
-    scale = UNITS[inp.units] / UNITS[plan.units]
-    source = SourceInfo(path=relative_to_workflow(inp.path, plan.base_dir), sha256=digest, units=inp.units,
+                          digest=digest, where=where, params=inp.params)
+    units = _data_units(parts, inp, where)
+    scale = UNITS[units] / UNITS[plan.units]
+    source = SourceInfo(path=relative_to_workflow(inp.path, plan.base_dir), sha256=digest, units=units,
                         scale=scale, reader=parts[0].source.reader if parts[0].source else "",
                         notes=parts[0].source.notes if parts[0].source else {})
     scaled = [dataclasses.replace(ds, points=ds.points * scale if scale != 1.0 else ds.points, source=source)

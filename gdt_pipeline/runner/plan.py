@@ -22,6 +22,8 @@ class InputPlan:
     units: str = "m"
     viewpoints: list | None = None
     sha256: str | None = None
+    params: dict[str, Any] | None = None  # the reader's parameters (the input's ``with:``)
+    units_given: bool = False  # the workflow wrote ``units:`` on the input (a reader's own units must then agree)
 
 
 @dataclass(frozen=True)
@@ -84,7 +86,8 @@ def plan_from_workflow(wf: LoadedWorkflow, registry: Registry) -> RunPlan:
     epochs = []
     for e_index, epoch in enumerate(model.epochs):
         inputs = [InputPlan(path=wf.input_path(inp), name=inp.name or identifier(Path(inp.path).stem), kind=inp.kind,
-                            reader=inp.reader, units=inp.units or model.units, viewpoints=inp.viewpoints)
+                            reader=inp.reader, units=inp.units or model.units, viewpoints=inp.viewpoints,
+                            params=inp.with_, units_given=inp.units is not None)
                   for inp in epoch.inputs]
         stages = [StagePlan(index=s_index, spec=registry.get(entry.uses), params=entry.with_, id=entry.id)
                   for s_index, entry in iter_chain(wf, epoch)]

@@ -196,6 +196,19 @@ def input_problems(inp: dict, loc: tuple, registry: Registry, problems: Problems
         if not accepted:
             exts = sorted({x for s in registry.stages("reader") for x in s.extensions})
             problems.add((*loc, "path"), f"no installed reader accepts {full.name!r} (extensions: {', '.join(exts)})")
+            return
+        reader = accepted[0].name
+    if isinstance(reader, str) and reader in registry.names("reader") and isinstance(inp.get("with"), dict):
+        reader_param_problems(registry.reader(reader), inp["with"], (*loc, "with"), problems)
+
+
+def reader_param_problems(spec: Any, params: dict, loc: tuple, problems: Problems) -> None:
+    """An input's ``with:`` checked against the params model of the reader that will read it."""
+    try:
+        spec.params.model_validate(params)
+    except ValidationError as exc:
+        for err in exc.errors(include_url=False):
+            problems.add((*loc, *err["loc"]), f"reader {spec.name!r}: {err['msg']}")
 
 
 def param_problems(model: Any, registry: Registry, problems: Problems, base: Path) -> None:

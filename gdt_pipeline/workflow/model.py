@@ -29,7 +29,11 @@ class InputSpec(StrictModel):
     kind: Literal["mesh", "points"] | None = Field(None, description="Force mesh or point reading (PLY can be both).")
     units: Units | None = Field(None, description="Units the file is written in; default: the workflow's units.")
     reader: str | None = Field(None, description="Reader stage to use; default: chosen by file extension.")
-    viewpoints: list[Vec3] | None = Field(None, description="Sensor positions (in the file's units), if known.")
+    viewpoints: list[Vec3] | None = Field(None, description="Sensor positions (in the file's units), if known; a pose "
+                                                            "file beside the scan and the file's own header (E57) "
+                                                            "come first (docs/formats.md).")
+    with_: dict[str, Any] | None = Field(None, alias="with", description="The reader's parameters (e.g. LAS "
+                                                                         "`classes`, STEP `tolerance`, E57 `scans`).")
 
 
 class EpochSpec(StrictModel):

@@ -104,6 +104,6 @@ def read_e57(req: ReadRequest) -> list[Dataset]:
         parts = [_read_scan(e57, k, req) for k in wanted]
     finally:
         e57.close()
-    req.report(scans=len(parts), points=[len(p.points) for p in parts],
+    req.report(units="m", scans=len(parts), points=[len(p.points) for p in parts],
                poses=sum(p.pose is not None for p in parts))
     return parts

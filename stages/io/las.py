@@ -143,13 +143,42 @@ def check_las_header(path: Path) -> int:
 
 
 def read_las_points(path: Path, classes: list[int] | None) -> np.ndarray:
-    """(N,3) scaled coordinates of a LAS/LAZ (optionally only some ASPRS classes), header checked first; read a
-    chunk of points at a time, so that reading costs the 24 bytes a point it returns, not the whole point records
-    and their copies besides (about 100 bytes a point)."""
+    """(N,3) scaled coordinates of a LAS/LAZ (optionally only some ASPRS classes): :func:`read_las` without the
+    per-point attributes."""
+    return read_las(path, classes, ())[0]
+
+
+def _colour_scale(chunk: Any) -> float:
+    """LAS stores RGB as 16-bit, but many writers put 8-bit values there: a chunk whose channels all stay within
+    0..255 is read as 8-bit (the convention CloudCompare and PDAL follow too)."""
+    top = max(int(np.max(chunk.red, initial=0)), int(np.max(chunk.green, initial=0)),
+              int(np.max(chunk.blue, initial=0)))
+    return 255.0 if top <= 255 else 65535.0
+
+
+def _attribute_rows(chunk: Any, keep: Any, attributes: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The attributes asked for that a chunk's point format has: intensity as float32, colour as float32 0..1."""
+    names = set(chunk.point_format.dimension_names)
+    out: dict[str, np.ndarray] = {}
+    if "intensity" in attributes and "intensity" in names:
+        out["intensity"] = np.asarray(chunk.intensity, dtype=np.float32)[keep]
+    if "color" in attributes and {"red", "green", "blue"} <= names:
+        rgb = np.column_stack([np.asarray(chunk.red), np.asarray(chunk.green), np.asarray(chunk.blue)])[keep]
+        out["color"] = (rgb / _colour_scale(chunk)).astype(np.float32)
+    return out
+
+
+def read_las(path: Path, classes: list[int] | None, attributes: tuple[str, ...] = ("intensity", "color")
+             ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(N,3) scaled coordinates of a LAS/LAZ (optionally only some ASPRS classes) and the per-point ``attributes``
+    the point format has (``intensity``, ``color``), header checked first; read a chunk of points at a time, so that
+    reading costs what it returns (24 bytes a point, plus 4 for intensity and 12 for colour), not the whole point
+    records and their copies besides (about 100 bytes a point)."""
     import laspy
 
     count = check_las_header(path)
     pts = np.empty((count, 3))
+    fields: dict[str, list[np.ndarray]] = {}
     filled = read = 0
     try:
         with laspy.open(str(path)) as reader:
@@ -161,6 +190,8 @@ def read_las_points(path: Path, classes: list[int] | None) -> np.ndarray:
                 rows = pts[filled:filled + (n if classes is None else int(np.count_nonzero(keep)))]
                 for axis, values in enumerate((chunk.x, chunk.y, chunk.z)):
                     rows[:, axis] = np.asarray(values)[keep]
+                for name, values in _attribute_rows(chunk, keep, attributes).items():
+                    fields.setdefault(name, []).append(values)
                 filled += len(rows)
                 read += n
     except InputError:
@@ -169,4 +200,4 @@ def read_las_points(path: Path, classes: list[int] | None) -> np.ndarray:
         raise _failed(path, "LAS/LAZ", exc) from exc
     if read != count:
         raise InputError(f"{path}: the LAS header declares {count} points, laspy read {read}")
-    return pts[:filled]
+    return pts[:filled], {name: np.concatenate(parts) for name, parts in fields.items()}

@@ -114,15 +114,16 @@ def test_parity_on_a_non_watertight_mesh_and_two_disconnected_components(registr
 def test_sensor_frustum_from_the_pose_file(registry, tmp_path) -> None:
     import json
 
-    from gdt_pipeline.types import SourceInfo
+    from gdt_pipeline.runner import read_pose_file
 
     eye, target = np.array([0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])
     (tmp_path / "s_pose.json").write_text(json.dumps({"viewpoint": eye.tolist(), "target": target.tolist(),
                                                       "scanner": {"kind": "pinhole", "fov_deg": 60.0,
                                                                   "aspect": 2.0, "max_range": 5.0}}))
     scan = _scan(_grid(3.0, -0.5, 0.5, -0.3, 0.3, 0.02), eye)
-    scan = Dataset(scan.name, "as-is", scan.points, source=SourceInfo(path="s.ply", sha256=""),
-                   uncertainty=scan.uncertainty, viewpoints=scan.viewpoints)
+    # the station the engine settles on reading (runner.poses), as every stage sees it
+    scan = Dataset(scan.name, "as-is", scan.points, uncertainty=scan.uncertainty, viewpoints=scan.viewpoints,
+                   pose=read_pose_file(tmp_path / "s_pose.json"))
     ctx = stage_ctx(registry, "sensor_frustum", {"occlusion": False}, [scan], Composite(), tmp_path)
     rov = registry.get("sensor_frustum").run(ctx)["rov"]
     # horizontal half-angle 30°, vertical atan(tan 30° / 2) = 16.1°, range 0.05 .. 5

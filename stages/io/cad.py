@@ -162,6 +162,9 @@ def tessellate(path: Path, data: bytes, fmt: str, params: CadParams) -> bytes:
 
 def glb_document(glb: bytes) -> tuple[dict[str, Any], bytes]:
     """The JSON document and binary chunk of a GLB."""
+    # Decoded here rather than by trimesh's GLB loader: trimesh renames a mesh placed several times (gusset_1,
+    # gusset_2, ...) and keeps node names instead of the product names the parts are known by, and it labels an
+    # IGES model metres when cascadio wrote millimetres; the few glTF features cascadio writes are all read here.
     magic, _, length = struct.unpack_from("<4sII", glb, 0)
     json_length, json_type = struct.unpack_from("<I4s", glb, 12)
     if magic != b"glTF" or length != len(glb) or json_type != b"JSON":

@@ -164,6 +164,13 @@ def test_a_pose_file_comes_first_and_a_disagreeing_viewpoint_is_recorded(registr
     record = TwinStore.open(twin).provenance("E1")["inputs"][0]["datasets"][0]
     assert record["pose"]["source"] == "pose_file" and record["pose"]["position"] == [2.0, 0.0, 0.0]
     assert "differ from the pose file" in record["pose_warning"]
+    # the pose file alone is enough for sensor_model (it used to stop asking for `viewpoints:`), with the same result
+    (tmp_path / "alone.yaml").write_text(text.replace("most_reliable", "keep_unchanged").replace(
+        ", viewpoints: [[0.0, 3.0, 0.0]]", "").replace("twin: twin", "twin: alone"))
+    alone = run_workflow(tmp_path / "alone.yaml", registry=registry).twin
+    (with_vp,), (without,) = (TwinStore.open(t).read_epoch("E1", ["E1_scan"]) for t in (twin, alone))
+    assert np.array_equal(with_vp.covariance, without.covariance) and np.array_equal(with_vp.state, without.state)
+    assert "pose_warning" not in TwinStore.open(alone).provenance("E1")["inputs"][0]["datasets"][0]
 
 
 def test_damaged_e57_files_are_errors_never_points(scene: Path, registry: object, tmp_path: Path) -> None:

@@ -81,7 +81,7 @@ def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
         for found in identified.get(r.id, []):
             share = found["removed"] / found["of"]
             what = "facets" if found["kind"] == "mesh" else "points"
-            verb = "removed" if share >= 0.5 else "partly removed"
+            verb = "removed" if share >= 0.5 else "changed"
             click.echo(f"{r.id}: {verb}: {identity_label(found['identity'])} ({found['key']}: {found['removed']} "
                        f"of its {found['of']} {what})")
 

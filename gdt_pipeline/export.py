@@ -9,7 +9,6 @@ everything, the history included.
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ from twin_store import ElementSet, TwinStore
 
 from .errors import GdtError
 from .export_ply import export_ply
+from .export_values import written_in_place
 
 FORMATS = ("usda", "usdc", "usdz", "ply", "obj", "png", "las", "laz")
 SCOPES = ("composite", "epoch")
@@ -44,10 +44,9 @@ def export_obj(elements: list[ElementSet], out: Path) -> Path:
         else:
             scene.add_geometry(trimesh.PointCloud(es.points[vis]), geom_name=es.key)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}.obj")
-    tmp.write_text(trimesh.exchange.obj.export_obj(scene, include_normals=False, include_texture=False,
-                                                   include_color=False))
-    os.replace(tmp, out)
+    with written_in_place(out) as tmp:
+        tmp.write_text(trimesh.exchange.obj.export_obj(scene, include_normals=False, include_texture=False,
+                                                       include_color=False))
     return out
 
 

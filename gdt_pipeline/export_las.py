@@ -10,15 +10,13 @@ offset at the set's lower corner, so georeferenced clouds keep their precision.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
 from twin_store import STATE_COLORS, ElementSet
 
-from .errors import GdtError
-from .export_values import VALUE_FIELDS, element_values
+from .export_values import VALUE_FIELDS, element_values, written_in_place
 
 RESOLUTION_M = 1e-4
 
@@ -41,13 +39,8 @@ def write_las(es: ElementSet, path: Path, meters_per_unit: float) -> Path:
     las.red, las.green, las.blue = (rgb[:, k].astype(np.uint16) for k in range(3))
     for name, values in element_values(es, vis).items():
         setattr(las, name, values)
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-    try:
+    with written_in_place(path) as tmp:
         las.write(str(tmp))
-    except Exception as exc:
-        tmp.unlink(missing_ok=True)
-        raise GdtError(f"could not write {path}: {type(exc).__name__}: {exc}") from exc
-    os.replace(tmp, path)
     return path
 
 

@@ -11,15 +11,13 @@ properties per facet. The header's comments describe each property and name the 
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
 from twin_store import STATE_COLORS, ElementSet
 
-from .errors import GdtError
-from .export_values import CODE_NAMES, VALUE_FIELDS, element_values
+from .export_values import CODE_NAMES, VALUE_FIELDS, element_values, written_in_place
 from .names import UNITS
 
 
@@ -79,18 +77,12 @@ def write_ply(path: Path, elements: dict[str, np.ndarray], comments: list[str]) 
 
     header = PlyData([PlyElement.describe(rec, name) for name, rec in elements.items()], byte_order="<",
                      comments=comments).header
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}.ply")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(header.encode("ascii") + b"\n")
-            # plyfile writes an element with a list property record by record (about 14 s per million facets);
-            # the lists here all have three entries, so numpy writes the same bytes at once
-            for rec in elements.values():
-                fh.write(_body(rec))
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise GdtError(f"could not write {path}: {exc}") from exc
-    os.replace(tmp, path)
+    with written_in_place(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(header.encode("ascii") + b"\n")
+        # plyfile writes an element with a list property record by record (about 14 s per million facets);
+        # the lists here all have three entries, so numpy writes the same bytes at once
+        for rec in elements.values():
+            fh.write(_body(rec))
     return path
 
 

@@ -3,9 +3,16 @@ fields): one table of names, types and descriptions for both formats, and the va
 
 from __future__ import annotations
 
+import contextlib
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
 import numpy as np
 
 from twin_store import REASON_NAMES, STATE_NAMES, ElementSet
+
+from .errors import GdtError
 
 # name, numpy type, description (LAS extra-bytes descriptions hold 32 characters, so both formats say this much)
 VALUE_FIELDS: tuple[tuple[str, type[np.generic], str], ...] = (
@@ -35,3 +42,16 @@ def element_values(es: ElementSet, selected: np.ndarray) -> dict[str, np.ndarray
         "fusion_ratio": nan if es.reason_ratio is None else np.asarray(es.reason_ratio)[selected],
     }
     return {name: values[name].astype(dtype, copy=False) for name, dtype, _ in VALUE_FIELDS}
+
+
+@contextlib.contextmanager
+def written_in_place(path: Path) -> Iterator[Path]:
+    """A temporary path beside ``path`` to write to, renamed onto ``path`` once the block succeeds: a reader never
+    sees half a file, and a failed write leaves the old one (an error naming ``path``)."""
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    try:
+        yield tmp
+    except Exception as exc:
+        tmp.unlink(missing_ok=True)
+        raise GdtError(f"could not write {path}: {type(exc).__name__}: {exc}") from exc
+    os.replace(tmp, path)

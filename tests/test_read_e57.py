@@ -16,6 +16,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from gdt_pipeline import InputError
+from gdt_pipeline.audit import audit_twin
 from gdt_pipeline.runner import read_datasets, run_workflow
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
 from twin_store import TwinStore
@@ -146,6 +147,8 @@ def test_a_workflow_without_viewpoints_equals_the_one_given_them_by_hand(scene: 
     assert prov["datasets"][0]["pose"]["position"] == list(STATIONS[0][1])
     hand_prov = TwinStore.open(by_hand).provenance("E1")["inputs"][0]
     assert hand_prov["datasets"][0]["pose"]["source"] == "workflow"
+    audit = audit_twin(by_header, registry=registry)  # the E57 read again as recorded: its scans, poses and units
+    assert audit.ok and [e.verdict for e in audit.epochs] == ["match", "match"]
 
 
 def test_a_pose_file_comes_first_and_a_disagreeing_viewpoint_is_recorded(registry: object, tmp_path: Path) -> None:

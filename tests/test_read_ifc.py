@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from gdt_pipeline import InputError, ReadRequest
+from gdt_pipeline.audit import audit_twin
 from gdt_pipeline.runner import read_datasets, run_workflow
 from twin_store import TwinStore
 
@@ -244,3 +245,5 @@ def test_a_wall_missing_from_the_scan_is_logged_removed_by_its_global_id(registr
     (found,) = epochs["E2"]["identified_removals"]
     assert found["identity"]["global_id"] == room.guids[GONE] and found["kind"] == "mesh"
     assert found["removed"] / found["of"] > 0.5
+    audit = audit_twin(result.twin, registry=registry)  # the IFC read again as recorded gives the same twin
+    assert audit.ok and [e.verdict for e in audit.epochs] == ["match", "match"]

@@ -83,6 +83,16 @@ def _read_scan(e57: Any, k: int, req: ReadRequest) -> Dataset:
                    meta=meta)
 
 
+def _checked_scan(e57: Any, k: int, req: ReadRequest) -> Dataset:
+    """Scan ``k``, with libE57Format's refusal (a page whose CRC fails, a truncated binary section) named as such."""
+    try:
+        return _read_scan(e57, k, req)
+    except InputError:
+        raise
+    except Exception as exc:  # libE57Format's own exception type, raised for damaged data
+        raise InputError(f"scan {k}: the file is damaged: {str(exc).strip().splitlines()[0]}") from exc
+
+
 def read_e57(req: ReadRequest) -> list[Dataset]:
     """Every scan of an E57 file (or those ``scans`` asks for) as one dataset each, with its station."""
     try:
@@ -101,7 +111,7 @@ def read_e57(req: ReadRequest) -> list[Dataset]:
             raise InputError(f"scans {bad} asked for, but the file holds {count} (0..{count - 1})")
         if not wanted:
             raise InputError("the file holds no scans (data3D is empty)")
-        parts = [_read_scan(e57, k, req) for k in wanted]
+        parts = [_checked_scan(e57, k, req) for k in wanted]
     finally:
         e57.close()
     req.report(units="m", scans=len(parts), points=[len(p.points) for p in parts],

@@ -41,7 +41,9 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
         else:
             have = 0 if ds.viewpoints is None else len(ds.viewpoints)
             raise ValueError(f"dataset {ds.name!r}: sensor_model needs one sensor position per dataset (it has {have}):"
-                             f" give the input `viewpoints: [[x, y, z]]`, or split a multi-station scan per station")
+                             f" put a pose file beside the scan (<scan>_pose.json with a viewpoint), read a format "
+                             f"that carries it (E57), give the input `viewpoints: [[x, y, z]]`, or split a "
+                             f"multi-station scan per station (docs/formats.md)")
         pos = ds.element_positions()
         beam = pos - origin
         beam_range = np.linalg.norm(beam, axis=1)

@@ -15,6 +15,7 @@ from rich.table import Table
 
 from ..errors import WorkflowError
 from .common import EXIT_ERROR, err_console, installed_registry, out_console, setup_logging
+from .run_summary import run_summary
 
 
 class RichProgress:
@@ -97,6 +98,7 @@ def run(workflow: Path, twin: Path | None, overwrite: bool, quiet: bool, verbose
     out_console.print(f"twin written to {result.twin}", highlight=False, soft_wrap=True)
     out_console.print(f"root layer: {result.twin / 'twin.usda'}   lock: {result.lock}", highlight=False,
                       soft_wrap=True)
+    Console(width=max(120, out_console.width)).print(run_summary(result.twin))
 
 
 def _tiling(execution: Any, executor: str | None, workers: int | None, tile: float | None,

@@ -1,0 +1,71 @@
+"""The screen `gdt run` ends with: per epoch what changed (elements by state, segments), where the time went (seconds
+per stage), and where the report is; read back from the twin that was written, so it says what the twin holds."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+from rich.console import Group
+from rich.table import Table
+
+STATE_COLUMNS = (("new", "new"), ("removed", "removed"), ("unchanged", "unchanged"), ("outside_rov", "outside view"))
+
+
+def _segment_text(segments: list[dict[str, Any]]) -> str:
+    """Segments of an epoch in one cell: '2 new, 1 removed (1 artefact), 1 moved part'."""
+    if not segments:
+        return "-"
+    new = sum(1 for s in segments if s.get("kind") == "new")
+    removed = sum(1 for s in segments if s.get("kind") == "removed")
+    artefacts = sum(1 for s in segments if s.get("artefact"))
+    moved = sum(1 for s in segments if s.get("moved_item"))
+    text = f"{new} new, {removed} removed"
+    if artefacts:
+        text += f" ({artefacts} artefact{'s' if artefacts != 1 else ''})"
+    if moved:
+        text += f", {moved} moved part{'s' if moved != 1 else ''}"
+    return text
+
+
+def change_table(store: Any) -> Table:
+    """One row per epoch: elements by change state, segments, seconds."""
+    table = Table(title="what changed", title_justify="left")
+    table.add_column("epoch")
+    for _, label in STATE_COLUMNS:
+        table.add_column(label, justify="right")
+    table.add_column("segments")
+    table.add_column("seconds", justify="right")
+    for eid in store.epochs():
+        prov = store.provenance(eid)
+        counts = prov.get("counts") or {}
+        seconds = sum(float(st.get("seconds") or 0.0) for st in prov.get("stages", []))
+        table.add_row(eid, *(f"{counts.get(key, 0):,}" for key, _ in STATE_COLUMNS),
+                      _segment_text(store.read_segments(eid)), f"{seconds:.1f}")
+    return table
+
+
+def stage_table(store: Any) -> Table:
+    """Seconds per stage, summed over the epochs it ran in, slowest first."""
+    seconds: dict[tuple[str, str], float] = defaultdict(float)
+    runs: dict[tuple[str, str], int] = defaultdict(int)
+    for eid in store.epochs():
+        for st in store.provenance(eid).get("stages", []):
+            key = (str(st.get("family", "")), str(st.get("uses", "")))
+            seconds[key] += float(st.get("seconds") or 0.0)
+            runs[key] += 1
+    table = Table(title="time per stage", title_justify="left")
+    for name, justify in (("stage", "left"), ("family", "left"), ("epochs", "right"), ("seconds", "right")):
+        table.add_column(name, justify=justify)
+    for (family, name), total in sorted(seconds.items(), key=lambda kv: -kv[1]):
+        table.add_row(name, family, str(runs[(family, name)]), f"{total:.2f}")
+    return table
+
+
+def run_summary(twin: Path) -> Group:
+    """The end-of-run screen for the twin at ``twin``: what changed per epoch, and the time per stage."""
+    from twin_store import TwinStore
+
+    store = TwinStore.open(twin)
+    return Group(change_table(store), stage_table(store))

@@ -30,13 +30,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from gdt_pipeline import Dataset, InputError, ReadRequest
 
-from .mesh import check_triangles, drop_degenerate
+from .mesh import check_triangles, drop_degenerate, merged_mesh
+from .spf import check_spf
 
 log = logging.getLogger(__name__)
 
 CAD_VERSION = "1.0.0"
 STEP_SUFFIXES, IGES_SUFFIXES = (".step", ".stp"), (".igs", ".iges")
-SPF_START, SPF_END = b"ISO-10303-21;", b"END-ISO-10303-21;"
 MM_PER_M = 1000.0
 # part names listed in the provenance; past this only their count (an assembly may hold thousands of screws)
 MAX_LISTED = 20
@@ -74,15 +74,6 @@ class CadPart:
 def accepts_cad(path: Path, kind: str | None) -> bool:
     """A CAD model tessellates to a mesh: refused only when the input asks for points."""
     return kind != "points"
-
-
-def check_step(path: Path, data: bytes) -> None:
-    """A STEP file is a STEP physical file: it starts with ``ISO-10303-21;`` and ends with ``END-ISO-10303-21;``."""
-    head = data[:64].removeprefix(b"\xef\xbb\xbf").lstrip()
-    if not head.startswith(SPF_START):
-        raise InputError(f"{path}: not a STEP file: it does not start with 'ISO-10303-21;' (STEP physical file)")
-    if not data[-256:].rstrip().endswith(SPF_END):
-        raise InputError(f"{path}: truncated STEP file: it does not end with 'END-ISO-10303-21;' ({len(data)} bytes)")
 
 
 def check_iges(path: Path, data: bytes) -> None:
@@ -318,7 +309,7 @@ def read_cad(req: ReadRequest) -> list[Dataset] | Dataset:
     data = path.read_bytes()
     iges = path.suffix.lower() in IGES_SUFFIXES
     fmt = "IGES" if iges else "STEP"
-    (check_iges if iges else check_step)(path, data)
+    check_iges(path, data) if iges else check_spf(path, "STEP")
     file_units = iges_length_units(data) if iges else step_length_units(data)
     glb = tessellate(path, data, fmt, params)
     # cascadio 0.1.1 writes IGES in OpenCASCADE's millimetres but STEP in metres (tests/test_read_cad.py checks both)
@@ -331,9 +322,6 @@ def read_cad(req: ReadRequest) -> list[Dataset] | Dataset:
                **({"non_triangle_primitives_skipped": skipped} if skipped else {}))
     meta = {"cad_format": fmt, "cad_file_units": file_units}
     if params.merge_parts or iges:
-        starts = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
-        return Dataset(name=req.name, role=req.role, points=np.vstack([p.vertices for p in parts]),
-                       faces=np.vstack([p.faces + s for p, s in zip(parts, starts, strict=True)]),
-                       meta={**meta, "parts": str(len(parts))})
+        return merged_mesh(req, [(p.vertices, p.faces) for p in parts], {**meta, "parts": str(len(parts))})
     return [Dataset(name=p.name, role=req.role, points=p.vertices, faces=p.faces,
                     meta={"name": p.name, "instance": p.instance, **meta}) for p in parts]

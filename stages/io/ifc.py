@@ -21,13 +21,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from gdt_pipeline import Dataset, InputError, ReadRequest
 
-from .mesh import DEGENERATE_AREA
+from .mesh import degenerate_mask, merged_mesh
+from .spf import check_spf
 
 log = logging.getLogger(__name__)
 
 IFC_VERSION = "1.0.0"
 INSTALL_HINT = "reading IFC needs ifcopenshell: pip install 'gdt-pipeline[bim]'"
-SPF_START, SPF_END = b"ISO-10303-21;", b"END-ISO-10303-21;"
 # GlobalIds listed by name in the provenance; past this only their count (a model may skip thousands of annotations)
 MAX_LISTED = 20
 
@@ -44,24 +44,6 @@ class IfcParams(BaseModel):
                                            "openings are volumes, not surfaces anyone scans).")
     merge: bool = Field(False, description="One dataset for the whole model instead of one per product (a large "
                                            "model as one set; the products' identities are lost).")
-
-
-def check_spf(path: Path) -> None:
-    """An IFC file is a STEP physical file: it starts with ``ISO-10303-21;`` and ends with ``END-ISO-10303-21;``."""
-    size = path.stat().st_size
-    with open(path, "rb") as fh:
-        head = fh.read(64)
-        fh.seek(max(0, size - 256))
-        tail = fh.read()
-    head = head.removeprefix(b"\xef\xbb\xbf").lstrip()
-    if head.startswith(b"PK\x03\x04"):
-        raise InputError(f"{path}: a zip archive (IFCZIP?): unzip it and give the .ifc inside")
-    if head.startswith(b"<"):
-        raise InputError(f"{path}: XML (ifcXML?): only IFC STEP files (ISO-10303-21) are read")
-    if not head.startswith(SPF_START):
-        raise InputError(f"{path}: not an IFC file: it does not start with 'ISO-10303-21;' (STEP physical file)")
-    if not tail.rstrip().endswith(SPF_END):
-        raise InputError(f"{path}: truncated IFC file: it does not end with 'END-ISO-10303-21;' ({size} bytes)")
 
 
 def open_ifc(path: Path) -> Any:
@@ -131,16 +113,6 @@ def _listed(global_ids: list[str]) -> list[str]:
                                       if len(global_ids) > MAX_LISTED else [])
 
 
-def degenerate(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Mask of the facets without an area (a repeated vertex, collinear or coincident corners), as the mesh reader
-    judges them."""
-    a, b, c = (verts[faces[:, k]] for k in range(3))
-    doubled_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    longest = np.max([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)], axis=0)
-    repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
-    return repeated | (doubled_area <= DEGENERATE_AREA * longest)
-
-
 def _product_mesh(path: Path, product: Any, shape: tuple[np.ndarray, np.ndarray] | None
                   ) -> tuple[np.ndarray, np.ndarray, int] | None:
     """A product's vertices, its facets with area and how many were dropped; None when it has no facet with area."""
@@ -150,7 +122,7 @@ def _product_mesh(path: Path, product: Any, shape: tuple[np.ndarray, np.ndarray]
     if not np.isfinite(verts).all():
         raise InputError(f"{path}: {product.is_a()} {product.GlobalId}: the tessellation has NaN or infinite "
                          f"coordinates")
-    bad = degenerate(verts, faces)
+    bad = degenerate_mask(verts, faces)
     if bad.all():  # a product without a surface, skipped like one without geometry
         return None
     return verts, faces[~bad], int(bad.sum())
@@ -185,12 +157,7 @@ def read_ifc(req: ReadRequest) -> list[Dataset] | Dataset:
                     len(skipped), skipped[:5], dropped)
     if not parts:
         raise InputError(f"{req.path}: none of the {len(products)} products has triangles (body geometry)")
-    return merged(req, parts, model.schema) if req.params.merge else parts
-
-
-def merged(req: ReadRequest, parts: list[Dataset], schema: str) -> Dataset:
-    """The products' meshes as one dataset, in product order."""
-    starts = np.cumsum([0] + [len(ds.points) for ds in parts[:-1]])
-    return Dataset(name=req.name, role=req.role, points=np.vstack([ds.points for ds in parts]),
-                   faces=np.vstack([ds.faces + s for ds, s in zip(parts, starts, strict=True)]),
-                   meta={"ifc_file_schema": schema, "products": str(len(parts))})
+    if req.params.merge:
+        return merged_mesh(req, [(ds.points, ds.faces) for ds in parts],
+                           {"ifc_file_schema": model.schema, "products": str(len(parts))})
+    return parts

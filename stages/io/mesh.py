@@ -117,13 +117,25 @@ def check_triangles(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None
         raise nonfinite(path, vertices, bad, f"vertex row {row + 1}")
 
 
-def drop_degenerate(path: Path, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int]:
-    """Faces without an area (a repeated vertex index, collinear or coincident corners) removed, and their count."""
+def degenerate_mask(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Mask of the faces without an area: a repeated vertex index, collinear or coincident corners."""
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     doubled_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
     longest = np.max([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)], axis=0)
     repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
-    degenerate = repeated | (doubled_area <= DEGENERATE_AREA * longest)
+    return repeated | (doubled_area <= DEGENERATE_AREA * longest)
+
+
+def merged_mesh(req: ReadRequest, parts: list[tuple[np.ndarray, np.ndarray]], meta: dict[str, str]) -> Dataset:
+    """Several parts' meshes (vertices, faces) as one dataset named after the input, in part order."""
+    starts = np.cumsum([0] + [len(verts) for verts, _ in parts[:-1]])
+    return Dataset(name=req.name, role=req.role, points=np.vstack([verts for verts, _ in parts]),
+                   faces=np.vstack([faces + s for (_, faces), s in zip(parts, starts, strict=True)]), meta=meta)
+
+
+def drop_degenerate(path: Path, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int]:
+    """Faces without an area (a repeated vertex index, collinear or coincident corners) removed, and their count."""
+    degenerate = degenerate_mask(vertices, faces)
     n = int(degenerate.sum())
     if n == len(faces):
         raise InputError(f"{path}: all {n} facets are degenerate (repeated vertices or zero area)")

@@ -7,15 +7,18 @@ STAMP  := $(VENV)/.installed
 # Debian packages whose shared libraries the open3d wheel links against (libusb: the RealSense bits; libgl/libgomp:
 # rendering and OpenMP).
 DEB_LIBS := libusb-1.0-0 libgl1 libgomp1
+# Debian's Chromium and its WebDriver: the report's browser test opens a `gdt report` page in headless Chromium
+# (tests/test_report_browser.py; it skips, saying why, without them).
+BROWSER_DEBS := chromium chromium-driver
 
-.PHONY: demo test setup system-deps lint bench clean
+.PHONY: demo test setup system-deps browser-deps lint bench clean
 
 demo: setup
 	$(BIN)/gdt scene test-scene workflows/data/test_scene --seed 0
 	$(BIN)/gdt run workflows/demo.yaml --overwrite
 	$(BIN)/gdt audit out/demo_twin
 
-test: setup
+test: setup browser-deps
 	$(BIN)/python -m pytest -q -p no:cacheprovider
 
 bench: setup
@@ -25,6 +28,7 @@ bench: setup
 	$(BIN)/python bench/voxel_mle.py
 	$(BIN)/python bench/distances.py
 	$(BIN)/python bench/rov_depth.py
+	$(BIN)/python bench/report.py
 	$(BIN)/gdt eval workflows/test_scene.yaml --json out/eval/test_scene/result.json
 	$(BIN)/gdt eval workflows/fuselage.yaml --json out/eval/fuselage/result.json
 
@@ -36,6 +40,14 @@ setup: system-deps $(STAMP)
 # Install only what is missing; apt-get needs root (the CI and developer machines run as root).
 system-deps:
 	@missing=""; for p in $(DEB_LIBS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO="sudo"; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
+	fi
+
+browser-deps:
+	@missing=""; for p in $(BROWSER_DEBS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
 	  echo "installing Debian packages:$$missing"; \
 	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO="sudo"; \

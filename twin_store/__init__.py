@@ -3,15 +3,18 @@
 Depends on numpy and pxr only. Modules: ``names`` (codes, paths, primvar docs), ``elements`` (ElementSet and its
 USD prim), ``guides`` (regions of view, segments), ``history`` (epoch records, diffs), ``layers`` (atomic layer
 files), ``integrity`` (layer sha256s, what a twin folder owns), ``swap`` (replacing a whole twin, recovery after a
-kill), ``faults`` (the kill tests' injection points), ``lock`` (the writer lock), ``store`` (TwinStore)."""
+kill), ``faults`` (the kill tests' injection points), ``lock`` (the writer lock), ``lean`` (set by set,
+value by value reads), ``store`` (TwinStore)."""
 
 from .elements import ElementSet
 from .errors import TwinStoreError
 from .faults import FAULT_STEPS, fault
 from .history import EpochRecord, SetDiff
 from .integrity import foreign_files, sha256_file
+from .lean import LeanSet
 from .lock import lock_path, writer_lock
 from .names import REASON_NAMES, RUN_LOCK_NAME, STATE_COLORS, STATE_NAMES
+from .payloads import preview_rows
 from .store import TwinStore
 from .swap import partial_path, recover_leftovers, swap_into_place
 
@@ -23,6 +26,7 @@ __all__ = [
     "STATE_NAMES",
     "ElementSet",
     "EpochRecord",
+    "LeanSet",
     "SetDiff",
     "TwinStore",
     "TwinStoreError",
@@ -30,6 +34,7 @@ __all__ = [
     "foreign_files",
     "lock_path",
     "partial_path",
+    "preview_rows",
     "recover_leftovers",
     "sha256_file",
     "swap_into_place",

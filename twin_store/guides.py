@@ -74,19 +74,19 @@ def define_segment(stage: Usd.Stage, epoch_id: str, seg: dict) -> None:
             Vt.Int64Array.FromNumpy(np.asarray(idx, dtype=np.int64)))
 
 
-def read_segments(stage: Usd.Stage, epoch_id: str) -> list[dict]:
-    """The segments an epoch recorded, as dicts, in id order."""
+def read_segments(stage: Usd.Stage, epoch_id: str, *, members: bool = True) -> list[dict]:
+    """The segments an epoch recorded, as dicts, in id order (``members=False``: without the member indices)."""
     root = stage.GetPrimAtPath(f"{SEGMENTS_PRIM}/{epoch_id}")
-    out = [_read_segment(prim) for prim in (root.GetChildren() if root else [])]
+    out = [_read_segment(prim, members) for prim in (root.GetChildren() if root else [])]
     return sorted(out, key=lambda d: d["id"])
 
 
-def _read_segment(prim: Usd.Prim) -> dict:
-    """One segment prim as the dict ``define_segment`` was given."""
-    values = {a.GetName(): a.Get() for a in prim.GetAttributes()}
+def _read_segment(prim: Usd.Prim, with_members: bool = True) -> dict:
+    """One segment prim as the dict ``define_segment`` was given (members empty unless ``with_members``)."""
+    values = {a.GetName(): a.Get() for a in prim.GetAttributes() if not a.GetName().startswith(MEMBERS)}
     get = values.get
     members = {a.GetName()[len(MEMBERS):]: np.asarray(a.Get(), dtype=np.int64)
-               for a in prim.GetAttributes() if a.GetName().startswith(MEMBERS)}
+               for a in prim.GetAttributes() if with_members and a.GetName().startswith(MEMBERS)}
     out = {"id": int(prim.GetName()[4:]), "kind": str(get("gdt:kind")),
            "centroid": np.array(get("gdt:centroid")), "lower": np.array(get("gdt:lower")),
            "upper": np.array(get("gdt:upper")), "mean_score": float(get("gdt:meanScore")),

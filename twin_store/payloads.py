@@ -63,7 +63,8 @@ def relative_payloads(layer: Sdf.Layer, folder: Path) -> None:
         spec.payloadList.prependedItems = fixed
 
 
-def _sample(n: int) -> np.ndarray:
+def preview_rows(n: int) -> np.ndarray:
+    """The rows of a set of ``n`` points its preview holds: every k-th, at most ``PREVIEW_POINTS``."""
     return np.arange(0, n, max(1, -(-n // PREVIEW_POINTS)))
 
 
@@ -74,7 +75,7 @@ def _colours(es: ElementSet, rows: np.ndarray) -> np.ndarray:
 
 def define_preview(stage: Usd.Stage, es: ElementSet) -> None:
     """``/Previews/<key>``: every k-th point of the set, coloured by state, hidden ones zero-wide."""
-    rows = _sample(len(es.points))
+    rows = preview_rows(len(es.points))
     pts = np.asarray(es.points, dtype=np.float64)[rows]
     origin = (pts.min(axis=0) + pts.max(axis=0)) / 2 if len(pts) else np.zeros(3)
     geom = UsdGeom.Points.Define(stage, f"{PREVIEWS_PRIM}/{es.key}")
@@ -93,7 +94,7 @@ def restate_preview(stage: Usd.Stage, es: ElementSet) -> None:
     if not prim:
         return
     geom = UsdGeom.Points(prim)
-    rows = _sample(len(es.points))
+    rows = preview_rows(len(es.points))
     colours = _colours(es, rows)
     if not same_values(geom.GetDisplayColorPrimvar().Get(), colours):
         geom.GetDisplayColorPrimvar().Set(Vt.Vec3fArray.FromNumpy(colours))

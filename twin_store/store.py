@@ -29,6 +29,7 @@ from .errors import TwinStoreError
 from .history import EpochRecord, SetDiff, count_states, epoch_record, set_diff
 from .integrity import LayerDigests, run_lock_problems
 from .layers import export_atomic, open_layer, usd_message
+from .lean import LeanSet, iter_lean_sets
 from .lock import writer_lock
 from .names import EPOCH_DIR, REASON_NAMES, ROOT_NAME, STATE_NAMES, TWIN_PRIM
 from .payloads import define_payload_set, relative_payloads, restate_preview, wants_payload
@@ -248,9 +249,10 @@ class TwinStore:
     # ----------------------------------------------------------------------------------------------------------------
     # Reading an epoch
 
-    def read_segments(self, epoch_id: str) -> list[dict]:
-        """The segments (connected changed elements) an epoch recorded, as dicts, in id order."""
-        return guides.read_segments(self._stage_upto(self._epochs_upto(epoch_id)), epoch_id)
+    def read_segments(self, epoch_id: str, *, members: bool = True) -> list[dict]:
+        """The segments (connected changed elements) an epoch recorded, as dicts, in id order; ``members=False``
+        leaves out the member indices (a removed segment of a large scan has millions)."""
+        return guides.read_segments(self._stage_upto(self._epochs_upto(epoch_id)), epoch_id, members=members)
 
     def read_region_of_view(self, epoch_id: str) -> tuple[np.ndarray, np.ndarray] | None:
         """The region of view stored with ``epoch_id`` (points, faces), or None when the epoch has none."""
@@ -264,6 +266,14 @@ class TwinStore:
         wanted = None if keys is None else set(keys)
         return [read_element_set(child) for child in (twin.GetChildren() if twin else [])
                 if wanted is None or child.GetName() in wanted]
+
+    def iter_sets(self, epoch_id: str) -> Iterator[LeanSet]:
+        """The sets of the twin at ``epoch_id`` one at a time, each array read only when asked for (``lean``), with
+        the same set as it was at the previous epoch; for summaries of twins too large to read whole."""
+        upto = self._epochs_upto(epoch_id)
+        stage = self._stage_upto(upto)
+        before = self._stage_upto(upto[:-1]) if len(upto) > 1 else None
+        yield from iter_lean_sets(stage, before)
 
     def identities(self, epoch_id: str) -> dict[str, dict[str, str]]:
         """Per set that has one, its identity outside the twin (IFC GlobalId and class, part name) at ``epoch_id``,

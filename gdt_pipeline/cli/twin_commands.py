@@ -1,4 +1,5 @@
-"""The twin commands: log, show, diff, export, audit, and calibrate (a sensor profile from scans of a known object)."""
+"""The twin commands: log, show, diff, export, audit, report (one HTML page of the twin at an epoch), and calibrate
+(a sensor profile from scans of a known object)."""
 
 from __future__ import annotations
 
@@ -249,4 +250,26 @@ def audit(twin: Path, epoch: str | None, strict: bool, inputs_dir: Path | None, 
         raise SystemExit(EXIT_ERROR)
 
 
-COMMANDS = (log_cmd, show, diff, export, calibrate, audit)
+@click.command()
+@click.argument("twin", type=click.Path(path_type=Path))
+@click.option("--epoch", help="Epoch id (default: the latest).")
+@click.option("-o", "--output", type=click.Path(path_type=Path, dir_okay=False),
+              help="HTML file to write (default: <twin folder name>_report.html beside the twin).")
+@click.option("--budget", type=click.IntRange(min=0), default=500_000, show_default=True,
+              help="Points drawn in the 3-D view at most (a voxel subsample of the twin's points).")
+def report(twin: Path, epoch: str | None, output: Path | None, budget: int) -> None:
+    """Write one self-contained HTML page of TWIN at an epoch: a 3-D view by change state, the segments, score and
+    uncertainty histograms, and the provenance; it opens offline in any browser."""
+    import os
+
+    from ..report import default_output, write_report
+
+    # read .usdc arrays with pread, not mmap: pages of a large twin's layers touched once would otherwise stay
+    # resident (and counted in the RSS) until the layer closes; pread's copies are freed as soon as they are used
+    os.environ.setdefault("USDC_USE_PREAD", "1")
+    summary = write_report(twin, output or default_output(twin), epoch=epoch, budget=budget)
+    click.echo(f"wrote {summary.path} ({summary.bytes / 1e6:.1f} MB; epoch {summary.epoch}; showing "
+               f"{summary.points_shown:,} of {summary.points_total:,} points) in {summary.seconds:.1f} s")
+
+
+COMMANDS = (log_cmd, show, diff, export, calibrate, audit, report)

@@ -13,7 +13,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from ..errors import WorkflowError
+from ..errors import GdtError, WorkflowError
 from .common import EXIT_ERROR, err_console, installed_registry, out_console, setup_logging
 from .run_summary import run_summary
 
@@ -77,10 +77,12 @@ def rich_reporter(progress: Progress | None) -> Any:
 @click.option("--tile-elements", type=click.IntRange(min=1000),
               help="Instead of --tile: at most this many recent elements in one tile's core.")
 @click.option("--address", help="Dask scheduler to use (tcp://host:8786) instead of a local cluster.")
+@click.option("--report/--no-report", default=True, show_default=True,
+              help="Write the HTML report of the last epoch beside the twin (<twin>_report.html; `gdt report`).")
 def run(workflow: Path, twin: Path | None, overwrite: bool, quiet: bool, verbose: int, log_file: Path | None,
         executor: str | None, workers: int | None, tile: float | None, tile_elements: int | None,
-        address: str | None) -> None:
-    """Run WORKFLOW end to end and write its twin."""
+        address: str | None, report: bool) -> None:
+    """Run WORKFLOW end to end, write its twin, and end with a summary (and the report's path)."""
     from ..runner import run_workflow
     from ..workflow import load_workflow
 
@@ -99,6 +101,24 @@ def run(workflow: Path, twin: Path | None, overwrite: bool, quiet: bool, verbose
     out_console.print(f"root layer: {result.twin / 'twin.usda'}   lock: {result.lock}", highlight=False,
                       soft_wrap=True)
     Console(width=max(120, out_console.width)).print(run_summary(result.twin))
+    if report:
+        _write_run_report(result.twin)
+
+
+def _write_run_report(twin: Path) -> None:
+    """The report beside the twin; a report that cannot be written is a warning: the twin is complete and kept."""
+    from twin_store import TwinStoreError
+
+    from ..report import default_output, write_report
+
+    try:
+        written = write_report(twin, default_output(twin))
+    except (GdtError, TwinStoreError, OSError) as exc:
+        err_console.print(f"warning: no report written: {exc}", highlight=False, soft_wrap=True)
+        return
+    out_console.print(f"report: {written.path} ({written.bytes / 1e6:.1f} MB, {written.points_shown:,} of "
+                      f"{written.points_total:,} points shown; open it in a browser, no server needed)",
+                      highlight=False, soft_wrap=True)
 
 
 def _tiling(execution: Any, executor: str | None, workers: int | None, tile: float | None,

@@ -1,0 +1,136 @@
+"""Lean reads of a twin at an epoch: one element set at a time, one per-element value at a time, on request.
+
+``read_element_set`` reads every primvar of a set at once, in float64 world coordinates; a reader that only
+summarises a large twin (a report, a picture) would hold several times its point arrays. A ``LeanSet`` reads
+nothing up front: each array comes from its primvar when asked for (points stay float32 relative to the set's
+translate), so the caller can reduce it and drop it before asking for the next. A payload set (a large point set in
+a layer of its own, see ``payloads``) also offers its decimated ``/Previews/<key>`` points and the rows of the set
+they are, so that its own points need not be read at all.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+from pxr import Usd, UsdGeom
+
+from .elements import identity_of
+from .errors import TwinStoreError
+from .names import TWIN_PRIM
+from .payloads import PREVIEWS_PRIM, preview_rows
+
+# what a lean read may ask for: the per-element primvar and the dtype it is read as
+FIELDS: dict[str, tuple[str, Any]] = {
+    "state": ("gdt:changeState", np.uint8),
+    "visible": ("gdt:visible", np.bool_),
+    "source_epoch": ("gdt:sourceEpoch", np.int32),
+    "score": ("gdt:changeScore", np.float32),
+    "uncertainty": ("gdt:uncertainty", np.float32),
+    "p_value": ("gdt:pValue", np.float32),
+    "reason": ("gdt:fusionReason", np.uint8),
+}
+
+
+def _origin(prim: Usd.Prim) -> np.ndarray:
+    ops = UsdGeom.Xformable(prim).GetOrderedXformOps()
+    return np.asarray(ops[0].Get(), dtype=np.float64) if ops else np.zeros(3)
+
+
+def _primvar(prim: Usd.Prim, name: str) -> np.ndarray | None:
+    """One per-element value of a prim (None when the prim has none); arrays share USD's memory, read-only."""
+    if name not in FIELDS:
+        raise TwinStoreError(f"unknown per-element value {name!r} (known: {', '.join(FIELDS)})")
+    primvar, dtype = FIELDS[name]
+    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(primvar)
+    value = pv.Get() if pv else None
+    return None if value is None else np.asarray(value, dtype=dtype)
+
+
+class LeanSet:
+    """One element set of the twin at an epoch, each array read only when asked for (see the module docstring).
+
+    Valid while the iteration that yielded it goes on (its prims belong to the stages the iteration holds)."""
+
+    def __init__(self, prim: Usd.Prim, before: Usd.Prim | None, preview: Usd.Prim | None, first_epoch: bool) -> None:
+        self._prim = prim
+        self._before = before
+        self._preview = preview
+        self._first = first_epoch
+
+    @property
+    def key(self) -> str:
+        """The set's key (prim name)."""
+        return self._prim.GetName()
+
+    @property
+    def kind(self) -> str:
+        """``mesh`` or ``points``."""
+        return "mesh" if self._prim.IsA(UsdGeom.Mesh) else "points"
+
+    @property
+    def identity(self) -> dict[str, str] | None:
+        """The set's identity outside the twin (part name, IFC GlobalId), if it has one."""
+        return identity_of(self._prim)
+
+    @property
+    def new_here(self) -> bool:
+        """Whether the set came in with this epoch (every set of the first epoch did)."""
+        return self._first or self._before is None
+
+    @property
+    def has_preview(self) -> bool:
+        """Whether the set is a payload set with a decimated preview (``preview``)."""
+        return self._preview is not None
+
+    def field(self, name: str) -> np.ndarray:
+        """One per-element value (a name of ``FIELDS``) over all elements, read now."""
+        value = _primvar(self._prim, name)
+        if value is None:
+            raise TwinStoreError(f"element set {self.key} has no {FIELDS[name][0]}")
+        return value
+
+    def field_before(self, name: str) -> np.ndarray | None:
+        """The same value as it was at the previous epoch (None for a set that came in with this epoch)."""
+        return None if self._before is None else _primvar(self._before, name)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World lower and upper corners of the set (from its extent; from its points where it has none)."""
+        extent = UsdGeom.PointBased(self._prim).GetExtentAttr().Get()
+        local = np.asarray(extent if extent is not None else self.points()[0], dtype=np.float64)
+        return local.min(axis=0) + _origin(self._prim), local.max(axis=0) + _origin(self._prim)
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """All points (mesh vertices) as float32 relative to the set's origin, and the origin (float64)."""
+        value = UsdGeom.PointBased(self._prim).GetPointsAttr().Get()
+        return np.asarray(value, dtype=np.float32).reshape(-1, 3), _origin(self._prim)
+
+    def faces(self) -> np.ndarray:
+        """A mesh's triangles (F,3) into its points."""
+        if self.kind != "mesh":
+            raise TwinStoreError(f"element set {self.key} is a point set: it has no faces")
+        return np.asarray(UsdGeom.Mesh(self._prim).GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
+
+    def preview(self, n_elements: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """For a payload set: its preview's points (float32, relative to the returned origin) and the rows of the
+        set they are; None for a set without a preview (or one that does not match the set's ``n_elements``)."""
+        if self._preview is None:
+            return None
+        rows = preview_rows(n_elements)
+        local = np.asarray(UsdGeom.Points(self._preview).GetPointsAttr().Get(), dtype=np.float32).reshape(-1, 3)
+        if len(local) != len(rows):
+            return None
+        return local, _origin(self._preview), rows
+
+
+def iter_lean_sets(stage: Usd.Stage, before: Usd.Stage | None) -> Iterator[LeanSet]:
+    """The sets under ``/Twin`` of a composed stage, in prim order, each with its prim on the stage of the previous
+    epoch (``before``; None at the first epoch) and its preview, if it has one."""
+    twin = stage.GetPrimAtPath(TWIN_PRIM)
+    for child in twin.GetChildren() if twin else []:
+        if not child.IsA(UsdGeom.PointBased):
+            continue
+        old = before.GetPrimAtPath(child.GetPath()) if before is not None else None
+        preview = stage.GetPrimAtPath(f"{PREVIEWS_PRIM}/{child.GetName()}")
+        yield LeanSet(child, old if old else None, preview if preview else None, before is None)

@@ -346,5 +346,9 @@ def _outcome(stages: list[StagePlan], results: list[TileResult], cutter: _Cutter
     reports = []
     for k in range(len(stages)):
         per_tile = [{"tile": r.tile, "elements": r.elements, **r.reports[k]} for r in results[:KEPT_TILE_REPORTS]]
-        reports.append({"tiling": tiling, "tile_reports": per_tile})
+        # what every tile reported alike (a whole-epoch figure from the stage's survey) is the stage's, as in a
+        # whole run
+        first = results[0].reports[k] if results else {}
+        alike = {key: value for key, value in first.items() if all(r.reports[k].get(key) == value for r in results)}
+        reports.append({**alike, "tiling": tiling, "tile_reports": per_tile})
     return TileRunOutcome(seconds, reports)

@@ -21,7 +21,7 @@ from gdt_pipeline.sensors import profile_problems
 from .calibrated import CalibratedParams, calibrated
 from .constant import ConstantParams, constant
 from .registration_propagation import PropagationParams, registration_propagation
-from .sensor_model import SensorModelParams, sensor_model
+from .sensor_model import SensorModelParams, sensor_model, sensor_survey
 from .voxel_mle import VoxelMleParams, voxel_mle
 
 __all__ = ["CalibratedParams", "ConstantParams", "PropagationParams", "SensorModelParams", "VoxelMleParams",
@@ -49,8 +49,9 @@ def gdt_stages() -> list[StageSpec]:
         StageSpec(name="calibrated", params=CalibratedParams, run=calibrated, validate=_profile_isotropic,
                   description="Isotropic σ of a profile from `gdt calibrate` (scans of a known object).", **tiled),
         StageSpec(name="sensor_model", params=SensorModelParams, run=sensor_model, validate=_profile,
-                  description="Per-point covariance from sensor pose, range and incidence (preset or profile).",
-                  **tiled),
+                  survey=sensor_survey, optional=("reference",),
+                  description="Per-point covariance from sensor pose, range and incidence (preset or profile), "
+                              "optionally self-calibrated against the twin's meshes.", **tiled),
         StageSpec(name="voxel_mle", params=VoxelMleParams, run=voxel_mle,
                   description="Maximum-likelihood Gaussians on an overlapping voxel grid (dense noisy clouds).",
                   **common),

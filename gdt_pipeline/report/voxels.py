@@ -6,6 +6,9 @@ the same page. While points come in, at most ``hold`` are kept: past that the vo
 remain. At the end the voxel size is the smallest (to 1.1 %) whose occupied voxels fit the budget, on one
 grid for the whole twin. Voxel keys are int64 (three 21-bit indices); a count costs 9 bytes a kept point and a
 selection 24, computed chunk by chunk, so the working memory is a small multiple of what is kept.
+
+Not Open3D's ``voxel_down_sample``: it needs every point at once (the report reads a twin set by set within 200 MB),
+averages the points of a voxel into one that was never measured, and cannot aim at a point budget.
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin_store import STATE_COLORS, ElementSet
+from twin_store import ElementSet, state_colours
 
 from .export_values import VALUE_FIELDS, element_values, written_in_place
 
@@ -35,7 +35,7 @@ def write_las(es: ElementSet, path: Path, meters_per_unit: float) -> Path:
                            for name, dtype, doc in VALUE_FIELDS])
     las = laspy.LasData(header)
     las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
-    rgb = np.round(STATE_COLORS[np.minimum(np.asarray(es.state)[vis], len(STATE_COLORS) - 1)] * 65535)
+    rgb = np.round(state_colours(np.asarray(es.state)[vis]) * 65535)
     las.red, las.green, las.blue = (rgb[:, k].astype(np.uint16) for k in range(3))
     for name, values in element_values(es, vis).items():
         setattr(las, name, values)

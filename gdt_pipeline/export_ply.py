@@ -15,15 +15,15 @@ from pathlib import Path
 
 import numpy as np
 
-from twin_store import STATE_COLORS, ElementSet
+from twin_store import ElementSet, display_colours
 
 from .export_values import CODE_NAMES, VALUE_FIELDS, element_values, written_in_place
-from .names import UNITS
+from .names import unit_name
 
 
 def ply_comments(kind: str, meters_per_unit: float) -> list[str]:
     """The header comments of a set's PLY: its units, where the values sit, then what each property holds."""
-    unit = next((name for name, m in UNITS.items() if m == meters_per_unit), f"{meters_per_unit:g} m")
+    unit = unit_name(meters_per_unit)
     where = "per facet (face element)" if kind == "mesh" else "per point (vertex element)"
     lines = [f"units: {unit} (1 unit = {meters_per_unit:g} m)",
              f"{where}: red green blue by change state (or the set's display colour) and the scalar properties below"]
@@ -34,8 +34,7 @@ def ply_comments(kind: str, meters_per_unit: float) -> list[str]:
 
 
 def _colours(es: ElementSet, selected: np.ndarray) -> np.ndarray:
-    rgb = (STATE_COLORS[np.minimum(np.asarray(es.state), len(STATE_COLORS) - 1)] if es.display_color is None
-           else np.asarray(es.display_color, dtype=np.float64))
+    rgb = display_colours(es)
     return np.round(np.clip(rgb[selected], 0.0, 1.0) * 255).astype(np.uint8)
 
 

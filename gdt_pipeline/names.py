@@ -14,6 +14,11 @@ UNITS: dict[str, float] = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "um": 1
 Units = Literal[tuple(UNITS)]
 
 
+def unit_name(meters_per_unit: float) -> str:
+    """The short name of a unit (``m``, ``mm``...) from its size in metres, or the size itself when it has none."""
+    return next((name for name, m in UNITS.items() if abs(m - meters_per_unit) <= 1e-12 * m), f"{meters_per_unit:g} m")
+
+
 def identifier(stem: str) -> str:
     """A USD-safe identifier from a file stem: non-alphanumerics become ``_``, a leading digit gets a ``_``."""
     # ASCII only: str.isalnum() passes "ü", which USD's identifiers refuse (an IFC wall named "Wand Süd")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -59,22 +58,19 @@ def _f32(values: np.ndarray | None) -> np.ndarray | None:
 
 def identified_changes(store: TwinStore, epoch_ids: list[str]) -> dict[str, list[dict[str, Any]]]:
     """Per epoch, the sets with an identity outside the twin (an IFC element, a named CAD part) that lost elements in
-    it: their key, identity, and how many of the elements visible before were removed (hidden, state removed)."""
+    it: their key, identity, and how many of the elements visible before were removed (hidden, state removed).
+    Only the identified sets' state and visibility are read (``TwinStore.iter_sets``), never their geometry."""
     out: dict[str, list[dict[str, Any]]] = {}
-    for before_id, epoch_id in pairwise(epoch_ids):
-        ids = store.identities(epoch_id)
-        if not ids:
-            continue
-        before = {es.key: es for es in store.read_epoch(before_id, ids)}
-        for es in store.read_epoch(epoch_id, ids):
-            old = before.get(es.key)
-            if old is None or not np.any(old.visible):
+    for epoch_id in epoch_ids[1:]:
+        for es in store.iter_sets(epoch_id):
+            identity = es.identity
+            was_visible = es.field_before("visible") if identity else None
+            if was_visible is None or not was_visible.any():
                 continue
-            gone = (np.asarray(es.state) == ChangeState.REMOVED) & ~np.asarray(es.visible) & np.asarray(old.visible)
+            gone = (es.field("state") == ChangeState.REMOVED) & ~es.field("visible") & was_visible
             if gone.any():
-                out.setdefault(epoch_id, []).append(
-                    {"key": es.key, "identity": ids[es.key], "kind": es.kind, "removed": int(gone.sum()),
-                     "of": int(np.sum(old.visible))})
+                out.setdefault(epoch_id, []).append({"key": es.key, "identity": identity, "kind": es.kind,
+                                                     "removed": int(gone.sum()), "of": int(was_visible.sum())})
     return out
 
 

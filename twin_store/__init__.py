@@ -6,14 +6,14 @@ files), ``integrity`` (layer sha256s, what a twin folder owns), ``swap`` (replac
 kill), ``faults`` (the kill tests' injection points), ``lock`` (the writer lock), ``lean`` (set by set,
 value by value reads), ``store`` (TwinStore)."""
 
-from .elements import ElementSet
+from .elements import ElementSet, display_colours
 from .errors import TwinStoreError
 from .faults import FAULT_STEPS, fault
 from .history import EpochRecord, SetDiff
 from .integrity import foreign_files, sha256_file
 from .lean import LeanSet
 from .lock import lock_path, writer_lock
-from .names import REASON_NAMES, RUN_LOCK_NAME, STATE_COLORS, STATE_NAMES
+from .names import REASON_NAMES, RUN_LOCK_NAME, STATE_COLORS, STATE_NAMES, state_colours
 from .payloads import preview_rows
 from .store import TwinStore
 from .swap import partial_path, recover_leftovers, swap_into_place
@@ -30,6 +30,7 @@ __all__ = [
     "SetDiff",
     "TwinStore",
     "TwinStoreError",
+    "display_colours",
     "fault",
     "foreign_files",
     "lock_path",
@@ -37,6 +38,7 @@ __all__ = [
     "preview_rows",
     "recover_leftovers",
     "sha256_file",
+    "state_colours",
     "swap_into_place",
     "writer_lock",
 ]

@@ -15,7 +15,7 @@ from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
 from . import names
 from .errors import TwinStoreError
-from .names import STATE_COLORS, TWIN_PRIM
+from .names import TWIN_PRIM, state_colours
 
 # name -> (value type, interpolation, array, element size, documentation)
 Primvars = dict[str, tuple[Any, Any, np.ndarray, int, str | None]]
@@ -97,13 +97,17 @@ def face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 
 
+def display_colours(es: ElementSet) -> np.ndarray:
+    """What a viewer shows per element: the set's display colour where it has one, else the change state's."""
+    return state_colours(es.state) if es.display_color is None else np.asarray(es.display_color)
+
+
 def primvar_values(es: ElementSet) -> Primvars:
     """Per-element primvars of a set: name -> (value type, interpolation, array, element size, documentation)."""
     types = Sdf.ValueTypeNames
     interp = UsdGeom.Tokens.uniform if es.kind == "mesh" else UsdGeom.Tokens.vertex
     state = np.asarray(es.state, dtype=np.uint8)
-    colour = (STATE_COLORS[np.minimum(state, len(STATE_COLORS) - 1)] if es.display_color is None
-              else np.asarray(es.display_color, dtype=np.float32))
+    colour = display_colours(es).astype(np.float32)
     out: Primvars = {
         "gdt:uncertainty": (types.FloatArray, interp, np.asarray(es.uncertainty_summary, dtype=np.float32), 1,
                             names.DOC_UNCERTAINTY),
@@ -220,8 +224,7 @@ def _check_same_geometry(prim: Usd.Prim, es: ElementSet, epoch_id: str) -> str:
     geom = UsdGeom.PointBased(prim)
     kind = "mesh" if prim.IsA(UsdGeom.Mesh) else "points"
     old_local = np.asarray(geom.GetPointsAttr().Get(), dtype=np.float32)
-    ops = UsdGeom.Xformable(prim).GetOrderedXformOps()
-    origin = np.asarray(ops[0].Get(), dtype=np.float64) if ops else np.zeros(3)
+    origin = set_origin(prim)
     new_local = (np.asarray(es.points, dtype=np.float64) - origin).astype(np.float32)
     same = kind == es.kind and old_local.shape == new_local.shape and np.array_equal(old_local, new_local)
     if same and kind == "mesh":
@@ -273,11 +276,16 @@ def _restate_visibility(prim: Usd.Prim, kind: str, es: ElementSet) -> None:
         imageable.MakeInvisible()
 
 
+def set_origin(prim: Usd.Prim) -> np.ndarray:
+    """The world position a set's float32 points are relative to (its translate op; zero without one)."""
+    ops = UsdGeom.Xformable(prim).GetOrderedXformOps()
+    return np.asarray(ops[0].Get(), dtype=np.float64) if ops else np.zeros(3)
+
+
 def read_element_set(prim: Usd.Prim) -> ElementSet:
     """The element set a composed ``/Twin/<key>`` prim holds, in world coordinates."""
     geom = UsdGeom.PointBased(prim)
-    ops = UsdGeom.Xformable(prim).GetOrderedXformOps()
-    origin = np.asarray(ops[0].Get(), dtype=np.float64) if ops else np.zeros(3)
+    origin = set_origin(prim)
     pts = np.asarray(geom.GetPointsAttr().Get(), dtype=np.float64) + origin
     api = UsdGeom.PrimvarsAPI(prim)
 

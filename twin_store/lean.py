@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from .elements import identity_of
+from .elements import identity_of, set_origin
 from .errors import TwinStoreError
 from .names import TWIN_PRIM
 from .payloads import PREVIEWS_PRIM, preview_rows
@@ -31,11 +31,6 @@ FIELDS: dict[str, tuple[str, Any]] = {
     "p_value": ("gdt:pValue", np.float32),
     "reason": ("gdt:fusionReason", np.uint8),
 }
-
-
-def _origin(prim: Usd.Prim) -> np.ndarray:
-    ops = UsdGeom.Xformable(prim).GetOrderedXformOps()
-    return np.asarray(ops[0].Get(), dtype=np.float64) if ops else np.zeros(3)
 
 
 def _primvar(prim: Usd.Prim, name: str) -> np.ndarray | None:
@@ -99,12 +94,12 @@ class LeanSet:
         """World lower and upper corners of the set (from its extent; from its points where it has none)."""
         extent = UsdGeom.PointBased(self._prim).GetExtentAttr().Get()
         local = np.asarray(extent if extent is not None else self.points()[0], dtype=np.float64)
-        return local.min(axis=0) + _origin(self._prim), local.max(axis=0) + _origin(self._prim)
+        return local.min(axis=0) + set_origin(self._prim), local.max(axis=0) + set_origin(self._prim)
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         """All points (mesh vertices) as float32 relative to the set's origin, and the origin (float64)."""
         value = UsdGeom.PointBased(self._prim).GetPointsAttr().Get()
-        return np.asarray(value, dtype=np.float32).reshape(-1, 3), _origin(self._prim)
+        return np.asarray(value, dtype=np.float32).reshape(-1, 3), set_origin(self._prim)
 
     def faces(self) -> np.ndarray:
         """A mesh's triangles (F,3) into its points."""
@@ -121,7 +116,7 @@ class LeanSet:
         local = np.asarray(UsdGeom.Points(self._preview).GetPointsAttr().Get(), dtype=np.float32).reshape(-1, 3)
         if len(local) != len(rows):
             return None
-        return local, _origin(self._preview), rows
+        return local, set_origin(self._preview), rows
 
 
 def iter_lean_sets(stage: Usd.Stage, before: Usd.Stage | None) -> Iterator[LeanSet]:

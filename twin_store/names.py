@@ -52,3 +52,8 @@ DOC_INTENSITY = "Return intensity per element as the scan file gave it (E57, LAS
 DOC_SCAN_COLOR = "Colour per element as the scan file gave it (E57, LAS RGB), 0..1 (displayColor shows the change)."
 # customData key of a set's identity outside the twin: part name, IFC GlobalId and class, E57 scan guid
 IDENTITY_KEY = "gdt:identity"
+
+
+def state_colours(state: np.ndarray) -> np.ndarray:
+    """The colour (0..1) of each change state code; codes past the table take its last colour."""
+    return STATE_COLORS[np.minimum(np.asarray(state, dtype=np.uint8), len(STATE_COLORS) - 1)]

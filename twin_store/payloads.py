@@ -18,7 +18,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from .elements import ElementSet, define_element_set, point_widths, same_values
 from .layers import export_atomic
-from .names import STATE_COLORS, TWIN_PRIM
+from .names import TWIN_PRIM, state_colours
 
 PAYLOAD_ELEMENTS = 2_000_000
 PREVIEW_POINTS = 200_000
@@ -69,8 +69,7 @@ def preview_rows(n: int) -> np.ndarray:
 
 
 def _colours(es: ElementSet, rows: np.ndarray) -> np.ndarray:
-    state = np.asarray(es.state, dtype=np.uint8)[rows]
-    return STATE_COLORS[np.minimum(state, len(STATE_COLORS) - 1)].astype(np.float32)
+    return state_colours(np.asarray(es.state)[rows]).astype(np.float32)
 
 
 def define_preview(stage: Usd.Stage, es: ElementSet) -> None:

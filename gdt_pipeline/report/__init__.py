@@ -18,7 +18,7 @@ from pathlib import Path
 
 from twin_store import TwinStore, TwinStoreError
 
-from ..names import UNITS
+from ..names import unit_name
 from .compose import page_parts
 from .histograms import epoch_histograms
 from .page import plotly_asset, write_page
@@ -47,11 +47,6 @@ def default_output(twin: Path) -> Path:
     return twin.absolute().parent / f"{twin.absolute().name}_report.html"
 
 
-def units_name(meters_per_unit: float) -> str:
-    """The twin unit's short name (``m``, ``mm``...), or its size in metres when it has none."""
-    return next((name for name, m in UNITS.items() if abs(m - meters_per_unit) <= 1e-12 * m), f"{meters_per_unit:g} m")
-
-
 def write_report(twin: Path, out: Path, *, epoch: str | None = None, budget: int = DEFAULT_BUDGET) -> ReportSummary:
     """Write the HTML report of ``twin`` at ``epoch`` (default: the latest) to ``out``."""
     t0 = time.perf_counter()
@@ -66,7 +61,7 @@ def write_report(twin: Path, out: Path, *, epoch: str | None = None, budget: int
         raise TwinStoreError(f"twin {twin} has no epoch {epoch!r} (epochs: {', '.join(epochs)})")
     asset = plotly_asset()  # before the reading: a missing plotly is said at once
     provenance = store.provenance(epoch)
-    units = units_name(store.meters_per_unit())
+    units = unit_name(store.meters_per_unit())
     sets, lower, upper = census(store, epoch)
     scene = scene_data(store, epoch, sets, (lower, upper), budget)
     parts = page_parts(

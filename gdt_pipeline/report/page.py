@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import GdtError
+from ..export_values import written_in_place
 from .figures import SOLID, STYLE, state_name, state_rgb
 from .tables import esc
 
@@ -140,9 +141,7 @@ def _chunks(parts: PageParts, asset: PlotlyAsset) -> Iterator[str]:
 def write_page(out: Path, parts: PageParts, asset: PlotlyAsset) -> int:
     """Write the page to ``out`` (through a temp file, renamed when complete); return its size in bytes."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(f".{out.name}.partial")
-    with open(partial, "w", encoding="utf-8", newline="\n") as fh:
+    with written_in_place(out) as partial, open(partial, "w", encoding="utf-8", newline="\n") as fh:
         for chunk in _chunks(parts, asset):
             fh.write(chunk)
-    partial.replace(out)
     return out.stat().st_size

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from gdt_pipeline import InputError
 from gdt_pipeline.audit import audit_twin
 from gdt_pipeline.runner import read_datasets, run_workflow
+from gdt_pipeline.simulation.family_workflow import STAGES
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
 from twin_store import TwinStore
 
@@ -26,7 +27,7 @@ STATIONS = (  # (name, eye, target, yaw of the scanner's frame in degrees)
     ("east", (3.2, -0.6, 1.1), (0.2, 0.0, 0.4), -20.0),
 )
 
-WORKFLOW = """\
+HEADER = """\
 name: e57
 twin: {twin}
 seed: 11
@@ -37,24 +38,12 @@ epochs:
   - id: E1
     role: as-is
     inputs: [{inputs}]
-stages:
-  - uses: constant
-    role: as-designed
-    with: {{model: box, half_widths: [0.0005, 0.0005, 0.0005]}}
-  - uses: sensor_model
-    role: as-is
-    with: {{profile: tof_low_cost}}
-  - uses: sensor_frustum
-    role: as-is
-  - uses: auto
-    role: as-is
-  - uses: bhattacharyya
-    role: as-is
-  - uses: calibrated_threshold
-    role: as-is
-    with: {{false_alarm: 0.01}}
-  - uses: most_reliable
 """
+
+
+def workflow(twin: str, inputs: str) -> str:
+    """The family scenes' default chain (the tof_low_cost preset) over the CAD cube and the given E1 inputs."""
+    return HEADER.format(twin=twin, inputs=inputs) + STAGES.replace("PROFILE", "tof_low_cost")
 
 
 def _quaternion_wxyz(rot: Rotation) -> np.ndarray:
@@ -125,8 +114,8 @@ def test_a_workflow_without_viewpoints_equals_the_one_given_them_by_hand(scene: 
         plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")]).write(str(hand / f"{part.name}.ply"))
         vp = ", ".join(repr(float(v)) for v in part.pose.position)
         inputs.append(f"{{path: {part.name}.ply, name: {part.name}, viewpoints: [[{vp}]]}}")
-    (hand / "workflow.yaml").write_text(textwrap.dedent(WORKFLOW.format(twin="twin", inputs=", ".join(inputs))))
-    (scene / "workflow.yaml").write_text(textwrap.dedent(WORKFLOW.format(twin=str(tmp_path / "twin_e57"),
+    (hand / "workflow.yaml").write_text(textwrap.dedent(workflow(twin="twin", inputs=", ".join(inputs))))
+    (scene / "workflow.yaml").write_text(textwrap.dedent(workflow(twin=str(tmp_path / "twin_e57"),
                                                                         inputs="{path: stations.e57}")))
     by_header = run_workflow(scene / "workflow.yaml", registry=registry, twin=tmp_path / "twin_e57").twin
     by_hand = run_workflow(hand / "workflow.yaml", registry=registry).twin
@@ -159,7 +148,7 @@ def test_a_pose_file_comes_first_and_a_disagreeing_viewpoint_is_recorded(registr
     plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")]).write(str(tmp_path / "scan.ply"))
     (tmp_path / "scan_pose.json").write_text(json.dumps({"viewpoint": [2.0, 0.0, 0.0]}))
     inputs = "{path: scan.ply, name: scan, viewpoints: [[0.0, 3.0, 0.0]]}"
-    text = WORKFLOW.format(twin="twin", inputs=inputs).replace("  - uses: sensor_frustum\n    role: as-is\n", "")
+    text = workflow(twin="twin", inputs=inputs).replace("  - uses: sensor_frustum\n    role: as-is\n", "")
     text = text.replace("calibrated_threshold\n    role: as-is\n    with: {false_alarm: 0.01}",
                         "fixed\n    role: as-is\n    with: {tau: 10}")
     (tmp_path / "workflow.yaml").write_text(text.replace("most_reliable", "keep_unchanged"))
@@ -216,13 +205,13 @@ def test_scans_can_be_chosen_and_a_pose_file_cannot_serve_several(scene: Path, r
 def test_reader_parameters_come_from_the_inputs_with(scene: Path, registry: object, tmp_path: Path) -> None:
     from gdt_pipeline.workflow import WorkflowError, load_workflow
 
-    text = WORKFLOW.format(twin=str(tmp_path / "one"), inputs="{path: stations.e57, with: {scans: [1]}}")
+    text = workflow(twin=str(tmp_path / "one"), inputs="{path: stations.e57, with: {scans: [1]}}")
     (scene / "one.yaml").write_text(textwrap.dedent(text))
     twin = run_workflow(scene / "one.yaml", registry=registry).twin
     assert [es.key for es in TwinStore.open(twin).read_epoch("E1")] == ["E0_cad", "E1_stations_east"]
     record = TwinStore.open(twin).provenance("E1")["inputs"][0]
     assert record["params"] == {"scans": [1]} and [d["name"] for d in record["datasets"]] == ["stations_east"]
-    (scene / "bad.yaml").write_text(textwrap.dedent(WORKFLOW.format(
+    (scene / "bad.yaml").write_text(textwrap.dedent(workflow(
         twin="t", inputs="{path: stations.e57, with: {scan: [1]}}")))
     with pytest.raises(WorkflowError, match=r"epochs\.1\.inputs\.0\.with\.scan: reader 'pye57_scans': Extra inputs"):
         load_workflow(scene / "bad.yaml", registry)

@@ -83,6 +83,7 @@ class PairSource:
     ref_item: np.ndarray
     ref_element: np.ndarray
     query_per_candidate: bool  # query_position holds one row per candidate (else one per query element)
+    u_q_per_candidate: bool = False  # u_q holds one row per candidate (a neighbourhood expectation's)
 
     def subset(self, sel: np.ndarray, mu_q: np.ndarray | None = None, mu_r: np.ndarray | None = None) -> PairGroup:
         """The pairs ``sel`` (positions in ``idx``) as a ``PairGroup``, optionally with other means."""
@@ -90,7 +91,7 @@ class PairSource:
         elem = self.element[cand]
         if mu_q is None:
             mu_q = self.query_position[cand if self.query_per_candidate else elem]
-        return PairGroup(cand, elem, mu_q, take_rows(self.u_q, elem),
+        return PairGroup(cand, elem, mu_q, take_rows(self.u_q, cand if self.u_q_per_candidate else elem),
                          self.position[cand] if mu_r is None else mu_r, take_rows(self.u_r, self.ref_rows[cand]),
                          self.ref_item[cand], self.ref_element[cand])
 
@@ -107,20 +108,21 @@ def pair_sources(ds: Dataset, corr: Correspondences, reference: Composite) -> li
     # per candidate when the correspondences carry query positions, else per element
     per_candidate = corr.query_position is not None
     qpos = corr.query_position if per_candidate else ds.element_positions()
+    u_q, u_q_rows = (ds.uncertainty, False) if corr.query_uncertainty is None else (corr.query_uncertainty, True)
     sources = []
     if corr.ref_uncertainty is not None:  # per-candidate reference models (mixtures of neighbours)
         over = found[corr.ref_row[found] >= 0]
         if over.size:
-            sources.append(PairSource(over, corr.element, qpos, ds.uncertainty, corr.position, corr.ref_uncertainty,
-                                      corr.ref_row, corr.ref_item, corr.ref_element, per_candidate))
+            sources.append(PairSource(over, corr.element, qpos, u_q, corr.position, corr.ref_uncertainty,
+                                      corr.ref_row, corr.ref_item, corr.ref_element, per_candidate, u_q_rows))
         found = found[corr.ref_row[found] < 0]
     for item in np.unique(corr.ref_item[found]):
         sel = found[corr.ref_item[found] == item]
         ref = reference.items[item].dataset
         if ref.uncertainty is None:
             raise ValueError(f"reference dataset {ref.name!r} has no uncertainty")
-        sources.append(PairSource(sel, corr.element, qpos, ds.uncertainty, corr.position, ref.uncertainty,
-                                  corr.ref_element, corr.ref_item, corr.ref_element, per_candidate))
+        sources.append(PairSource(sel, corr.element, qpos, u_q, corr.position, ref.uncertainty,
+                                  corr.ref_element, corr.ref_item, corr.ref_element, per_candidate, u_q_rows))
     return sources
 
 

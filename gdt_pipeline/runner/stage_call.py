@@ -17,6 +17,7 @@ from ..errors import GdtError, StageError
 from ..plugins import StageContext, StageSpec
 from ..slots import valid
 from ..types import Correspondences
+from ..types.uncertainty import take_rows
 
 
 def element_ordered(corr: Correspondences) -> Correspondences:
@@ -28,7 +29,9 @@ def element_ordered(corr: Correspondences) -> Correspondences:
                            corr.distance[order], corr.method, element=corr.element[order],
                            query_position=None if corr.query_position is None else corr.query_position[order],
                            ref_uncertainty=corr.ref_uncertainty, n_elements=corr.n_elements,
-                           ref_row=None if corr.ref_row is None else corr.ref_row[order])
+                           ref_row=None if corr.ref_row is None else corr.ref_row[order],
+                           query_uncertainty=None if corr.query_uncertainty is None
+                           else take_rows(corr.query_uncertainty, order))
 
 
 @contextlib.contextmanager

@@ -180,7 +180,9 @@ def take_candidates(corr: Correspondences, keep: np.ndarray, element_of: IndexMa
     return Correspondences(corr.query, item, ref_element, corr.position[sel], corr.distance[sel], corr.method,
                            element=element_of(corr.element[sel]),
                            query_position=None if corr.query_position is None else corr.query_position[sel],
-                           ref_uncertainty=ref_unc, n_elements=n_elements, ref_row=ref_row)
+                           ref_uncertainty=ref_unc, n_elements=n_elements, ref_row=ref_row,
+                           query_uncertainty=None if corr.query_uncertainty is None
+                           else take_rows(corr.query_uncertainty, sel))
 
 
 def take_scores(s: Scores, elements: np.ndarray, match_of: IndexMap | None = None) -> Scores:

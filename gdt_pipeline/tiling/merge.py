@@ -84,11 +84,17 @@ def merge_correspondences(pieces: Sequence[Correspondences], n_elements: int, qu
         parts = [getattr(p, name) for p in pieces]
         return np.concatenate(parts)[order] if parts else np.zeros((0, *shape))
 
+    has_qunc = any(p.query_uncertainty is not None for p in pieces)
+    if has_qunc and not all(p.query_uncertainty is not None for p in pieces):
+        raise GdtError("tiles disagree on whether candidates carry a query uncertainty")
+    q_unc = None
+    if has_qunc:
+        q_unc = concat_uncertainty([p.query_uncertainty for p in pieces], sizes).take(order)
     method = pieces[0].method if pieces else ""
     merged = Correspondences(query, cat("ref_item"), cat("ref_element"), cat("position", (3,)), cat("distance"),
                              method, element=element[order], query_position=cat("query_position", (3,))
                              if has_qpos else None, ref_uncertainty=ref_unc, n_elements=n_elements,
-                             ref_row=None if ref_row is None else ref_row[order])
+                             ref_row=None if ref_row is None else ref_row[order], query_uncertainty=q_unc)
     return merged, [where[offsets[i]:offsets[i + 1]] for i in range(len(pieces))]
 
 

@@ -11,7 +11,7 @@ import numpy as np
 from .arrays import frozen_array
 from .pose import SensorPose
 from .states import Kind, Role
-from .uncertainty import BoxUncertainty, GaussianUncertainty, MixtureUncertainty, Uncertainty
+from .uncertainty import BoxUncertainty, GaussianUncertainty, MixtureUncertainty, Uncertainty, uncertainty_rows
 
 
 @dataclass(frozen=True)
@@ -194,7 +194,9 @@ class Correspondences:
     the query at ``query_position[m]`` (default: the element's position; facet samples use their own) with the
     reference at ``position[m]`` whose uncertainty is that of reference element ``ref_element[m]`` of item
     ``ref_item[m]``, or row ``ref_row[m]`` of ``ref_uncertainty`` where that is ≥ 0 (a mixture of neighbours;
-    default: row m for every candidate when ``ref_uncertainty`` is given). ``ref_item`` −1: no
+    default: row m for every candidate when ``ref_uncertainty`` is given). ``query_uncertainty``, when given, holds
+    the query's uncertainty per candidate (a neighbourhood expectation's, which differs from the element's own);
+    it comes with ``query_position``. ``ref_item`` −1: no
     correspondence inside the search space. Distance stages score every candidate and keep, per element, the
     lowest score (the paper: "the candidate with the lower change score wins").
     """
@@ -210,6 +212,7 @@ class Correspondences:
     ref_uncertainty: Uncertainty | None = None
     n_elements: int | None = None
     ref_row: np.ndarray | None = None
+    query_uncertainty: Uncertainty | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ref_item", frozen_array(self.ref_item, np.int64, (None,), "ref_item"))
@@ -230,6 +233,12 @@ class Correspondences:
         if self.query_position is not None:
             object.__setattr__(self, "query_position",
                                frozen_array(self.query_position, np.float64, (m, 3), "query position"))
+        if self.query_uncertainty is not None:
+            if self.query_position is None:
+                raise ValueError("correspondences with a query uncertainty per candidate need query positions")
+            rows = uncertainty_rows(self.query_uncertainty)
+            if rows not in (1, m):
+                raise ValueError(f"query uncertainty: {rows} rows for {m} candidates (give 1, or one per candidate)")
 
     @property
     def found(self) -> np.ndarray:

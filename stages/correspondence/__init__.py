@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
 from scipy.stats import chi2
 
-from gdt_pipeline import Correspondences, StageContext, StageSpec, hookimpl
+from gdt_pipeline import Correspondences, GaussianUncertainty, StageContext, StageSpec, hookimpl
 from gdt_pipeline.geometry import ReferenceIndex
 from gdt_pipeline.geometry.extent import check_scales
 from gdt_pipeline.measures import uncertainty_rows
@@ -34,6 +34,7 @@ from .directed import (
     query_samples,
     to_correspondences,
 )
+from .expectation import expectations
 
 
 class NearestParams(BaseModel):
@@ -77,6 +78,18 @@ class DirectedParams(BaseModel):
     surface_sampling: bool = Field(True, description="Reference points also carry where the surface lies between "
                                                      "them: (half their spacing)² in their tangent plane, so a sparse "
                                                      "precise scan matches a later one sampled elsewhere.")
+    expectation: Literal["point", "neighbourhood"] = Field(
+        "point", description="What a recent point is judged by: its own position and covariance (the per-point "
+                             "test), or the expectation of the twin's surface it lies on, pooled over its "
+                             "neighbours (dense noisy clouds against meshes; docs/distances.md).")
+    pooling_neighbours: PositiveInt = Field(256, ge=8, description="Neighbours a point's expectation pools at most "
+                                                                   "(scales 8, 16, … up to this).")
+    pooling_radius: PositiveFloat | None = Field(
+        None, description="Metres: neighbours' anchors on the twin's surface lie within this of the point's own. "
+                          "Default: the radius of the point's own 99 % region (wide for noisy points, narrow for "
+                          "precise ones).")
+    pooling_gamma: PositiveFloat = Field(1.5, description="Half width, in σ, of the confidence intervals that "
+                                                          "choose each point's scale (smaller: smaller scales).")
 
 
 def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: bool, use_meshes: bool
@@ -94,6 +107,7 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
     if ref_mesh is not None and not ref_mesh.empty:
         extra_var = max(float(np.linalg.eigvalsh(np.asarray(reference.items[i].dataset.element_covariance())
                                                  [vis]).max()) for i, vis in ref_mesh.items)
+    expected = expectations(ctx, ref_mesh) if p.expectation == "neighbourhood" else {}
     out = []
     for qi, ds in enumerate(ctx["recent"]):
         if query_kind is not None and ds.kind != query_kind:
@@ -106,13 +120,18 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
         density = p.sample_density or ctx.survey.get("facet_density", {}).get(ds.name)
         element, qpos = query_samples(ds, _sample_seed(ctx), density, p.max_samples_per_facet)
         qcov = np.asarray(ds.uncertainty.covariance(ds.n_elements))[element]
+        if ds.name in expected:
+            qpos, qcov = expected[ds.name].position[element], expected[ds.name].covariance[element]
         parts = []
         if ref_pts is not None and not ref_pts.empty:
             parts.append(point_to_point(qpos, qcov, ref_pts, q99, p.max_components, element))
         if ref_mesh is not None and not ref_mesh.empty:
             parts.append(point_to_mesh(qpos, qcov, ref_mesh, p.search_sigmas, extra_var, element))
         corr = to_correspondences(qi, ds.n_elements, parts, name)
-        if ds.faces is None:  # the queries are the points themselves: no copy of them per candidate (24 B each)
+        if ds.name in expected:
+            corr = dataclasses.replace(corr, query_uncertainty=GaussianUncertainty(
+                expected[ds.name].covariance[corr.element]))
+        elif ds.faces is None:  # the queries are the points themselves: no copy of them per candidate (24 B each)
             corr = dataclasses.replace(corr, query_position=None)
         matched = int(corr.element_found().sum())
         ctx.log.info("%s: %d of %d elements have candidates (%d candidates from %d query points)", ds.name, matched,
@@ -155,6 +174,12 @@ def _directed_reach(params: DirectedParams, slots: Mapping[str, Any]) -> float:
     if any(it.dataset.faces is None and it.visible.any() for it in reference.items):
         var_pts = ReferencePoints(reference, params.surface_sampling).max_var
         reach = max(reach, float(np.sqrt(chi2.ppf(params.probability, 3) * (var_q + var_pts))))
+    if params.expectation == "neighbourhood":
+        # a pooled point's neighbours: anchors within the pooling radius, each point within the search reach of its
+        # anchor, twice over (the second pass anchors by the first one's neighbours)
+        slack = params.search_sigmas * np.sqrt(var_q)
+        widest = params.pooling_radius or float(np.sqrt(chi2.ppf(0.99, 3) * var_q))
+        reach = max(reach, 2 * widest + 4 * slack)
     return float(reach + facet)
 
 

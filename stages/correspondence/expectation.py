@@ -1,0 +1,352 @@
+"""Neighbourhood expectation (paper Sec. 3: "estimating the expectation values of points lying on the objects'
+surfaces is necessary"): each point of a dense noisy cloud is judged through the expectation of the surface it
+lies on, not through its own noisy position.
+
+Per point P with covariance Σ:
+
+1. its anchor H on the twin's meshes. With a station: where the beam through P first meets a facet facing the
+   station within the search reach (a beam cannot have passed through a surface it faces; the nearest crossing
+   would move points far behind a thin part onto the floor behind it). Without one: the nearest crossing along
+   Σ's largest axis, or the closest point where Σ has no dominant axis. n is the facet's normal;
+2. its offset along that normal, δ = (P − H)·n, with variance nᵀΣn. Offsets are taken against the twin's own
+   shape, so its bends, edges and thin parts do not bias them;
+3. its neighbours: up to ``neighbours`` points of every recent point dataset (stations pool) whose anchors lie
+   within ``radius`` of H (default: the radius of P's own 99 % region) on facets facing within 60° of n;
+4. the pooled offset, in each quadrant about H apart: the mean of the nearest 2, 4, 8, … neighbours' offsets
+   (equal weights: a scanner's σ grows with the measured range, and inverse-variance weights would pull the mean
+   towards the sensor), leaving out those more than 3.5 σ off the median of the nearest 32 (another surface).
+   The scale is chosen by the intersection of confidence intervals (Katkovnik's LPA-ICI): the largest whose
+   interval (± ``gamma`` σ) still meets all smaller ones'. The quadrants and the point itself are fused by
+   inverse variance; where a quadrant runs into a change's edge its estimates drift, it stops early and weighs
+   little. A point that is itself more than 3.5 σ off its neighbours' median lies on another surface: it keeps
+   its own value;
+5. a second pass anchors each point on the crossing of its beam nearest to where its neighbours put the surface
+   (two surfaces within the noise along one beam: one point cannot tell which it is on, its neighbours can) and
+   pools again;
+6. the expectation: the point on P's line (its beam) at the pooled offset; its covariance is the pooled variance
+   along n and, across n, that of a point on the line (Σ across the line, the pooled variance over cos² along
+   it), so its spread along the surface shrinks with the pooling too.
+
+A point with no anchor within the search reach, a mesh's facets, or a point with fewer than 8 neighbours keeps
+its own position and covariance (the per-point test): pooling needs a known surface and a dense cloud.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gdt_pipeline import Dataset, GaussianUncertainty, StageContext
+from gdt_pipeline.names import UNITS
+
+MIN_NEIGHBOURS = 8  # fewer pooled: the point keeps its own value
+MIN_COS = 0.05
+COS_CONE = 0.5  # neighbours facing within 60°: a plate's two faces and a box's sides never mix
+TRIM_SIGMAS = 3.5  # neighbours farther than this off the median of the nearest CENTRE are another surface
+CENTRE = 32  # a median of 8 is off by 0.44 σ, which shifts the trimming window and adds to the mean's variance
+ISOTROPIC_RATIO = 2.0  # largest / second variance below this: no dominant axis, the closest point anchors
+REGION_99 = 11.345  # χ²(3) at 0.99: the squared radius, in σ, of a point's 99 % region
+CHUNK = 8192  # queries pooled at a time: bounds the (chunk × neighbours) work arrays to a few MB each
+
+
+@dataclass(frozen=True)
+class Anchors:
+    """Per point: its anchor on the twin's meshes, the normal there, its offset along the normal and the variance
+    of that offset (``ok`` False where no anchor lies within reach)."""
+
+    anchor: np.ndarray
+    normal: np.ndarray
+    offset: np.ndarray
+    variance: np.ndarray
+    ok: np.ndarray
+    axis: np.ndarray
+    largest: np.ndarray  # the largest variance of the point's covariance
+
+
+@dataclass(frozen=True)
+class Expectation:
+    """Per point of one dataset: its expected position and covariance, and how many neighbours were pooled
+    (1: its own)."""
+
+    position: np.ndarray
+    covariance: np.ndarray
+    pooled: np.ndarray
+
+
+def _crossings(scene: object, origin: np.ndarray, pos: np.ndarray, axis: np.ndarray, reach: np.ndarray,
+               normals: list[np.ndarray], facing: bool, target: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per point, the crossing of the line through it along ``axis`` with the meshes within ``reach`` of it that
+    lies nearest to ``target`` (a distance along the line back from the point; None: the point itself, or with
+    ``facing`` the first crossing along ``axis``); with ``facing``, only facets whose normal opposes ``axis`` (the
+    side a sensor looking along it sees). The signed distance from the crossing to the point along the line (inf:
+    none) and the facet's normal."""
+    import open3d as o3d
+
+    start = (pos - axis * reach[:, None] - origin).astype(np.float32)
+    ans = scene.list_intersections(o3d.core.Tensor(np.hstack([start, axis.astype(np.float32)])))
+    ray = ans["ray_ids"].numpy().astype(np.int64)
+    t = ans["t_hit"].numpy().astype(np.float64)
+    geom, prim = ans["geometry_ids"].numpy().astype(np.int64), ans["primitive_ids"].numpy().astype(np.int64)
+    n = np.zeros((len(ray), 3))
+    for g, table in enumerate(normals):
+        at = geom == g
+        n[at] = table[prim[at]]
+    along = reach[ray] - t  # point minus crossing, along the axis
+    ok = np.abs(along) <= reach[ray]
+    if facing:
+        ok &= np.einsum("ij,ij->i", n, axis[ray]) < 0
+    ray, along, n = ray[ok], along[ok], n[ok]
+    # without a target, seen from a station: the first facing crossing, the one a beam meets first. The nearest to
+    # the point would move points far behind a thin part onto the floor behind it, cut one tail of the part's
+    # offsets and bias their mean towards the sensor
+    key = -along if target is None and facing else np.abs(along - (0.0 if target is None else target[ray]))
+    order = np.lexsort((key, ray))
+    first = order[np.r_[True, ray[order][1:] != ray[order][:-1]]] if len(order) else order
+    dist = np.full(len(pos), np.inf)
+    normal = np.zeros_like(pos)
+    dist[ray[first]], normal[ray[first]] = along[first], n[first]
+    return dist, normal
+
+
+def surface_anchors(scene: object, origin: np.ndarray, normals: list[np.ndarray], pos: np.ndarray, cov: np.ndarray,
+                    station: np.ndarray | None, reach_sigmas: float, target: np.ndarray | None = None) -> Anchors:
+    """Each point's anchor on the meshes of ``scene`` (an Open3D raycasting scene about ``origin``; ``normals``:
+    each geometry's facet normals): with a station, the nearest crossing of its beam with a facet facing the
+    station; without, the nearest crossing along Σ's largest axis, or the closest point when Σ has no dominant
+    axis. Anchors lie within ``reach_sigmas`` σ of the point; where several crossings do, the one nearest to
+    ``target`` along the line (default: the first a beam meets, or without a station the nearest)."""
+    import open3d as o3d
+
+    w, v = np.linalg.eigh(cov)
+    reach = reach_sigmas * np.sqrt(w[:, -1])
+    if station is not None:
+        axis = pos - station
+        axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-300)
+    else:
+        axis = v[:, :, -1]
+    along, normal = _crossings(scene, origin, pos, axis, reach, normals, station is not None, target)
+    anchor = pos - axis * np.where(np.isfinite(along), along, 0.0)[:, None]
+    iso = (w[:, -1] < ISOTROPIC_RATIO * w[:, -2]) if station is None else np.zeros(len(pos), dtype=bool)
+    if iso.any():
+        ans = scene.compute_closest_points(o3d.core.Tensor((pos[iso] - origin).astype(np.float32)))
+        pts = ans["points"].numpy().astype(np.float64) + origin
+        d = np.linalg.norm(pts - pos[iso], axis=1)
+        rows = np.flatnonzero(iso)
+        along[rows] = np.where(d <= reach[iso], d, np.inf)
+        anchor[rows], normal[rows] = pts, ans["primitive_normals"].numpy()
+        axis = axis.copy()
+        axis[rows] = normal[rows]  # the closest point lies along the normal: that is the line the offset moves on
+    ok = np.isfinite(along)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    offset = np.einsum("ij,ij->i", pos - anchor, normal)
+    variance = np.einsum("ni,nij,nj->n", normal, cov, normal)
+    return Anchors(anchor, normal, np.where(ok, offset, 0.0), variance, ok, axis, w[:, -1])
+
+
+def _neighbour_table(anchor: np.ndarray, normal: np.ndarray, radius: np.ndarray, rows: np.ndarray, k: int
+                     ) -> np.ndarray:
+    """Per row of ``rows``: its ``k`` nearest anchors within the row's ``radius`` on a surface facing within 60° of
+    its own (a plate's two faces and a box's sides never mix), nearest first; −1 where there are fewer."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(anchor)
+    dist, idx = tree.query(anchor[rows], k=min(k, len(anchor)), distance_upper_bound=float(radius[rows].max()),
+                           workers=-1)
+    dist, idx = dist.reshape(len(rows), -1), idx.reshape(len(rows), -1)
+    found = idx < len(anchor)
+    safe = np.where(found, idx, 0)
+    found &= (dist <= radius[rows][:, None]) & (np.einsum("nkj,nj->nk", normal[safe], normal[rows]) >= COS_CONE)
+    # keep the order by distance with the dropped ones last: the scales count neighbours in that order
+    order = np.argsort(~found, axis=1, kind="stable")
+    return np.where(np.take_along_axis(found, order, axis=1), np.take_along_axis(idx, order, axis=1), -1)
+
+
+def _sectors(anchor: np.ndarray, normal: np.ndarray, rows: np.ndarray, nb: np.ndarray) -> np.ndarray:
+    """Per neighbour of each row, its quadrant (0–3) about the row's anchor in the tangent plane of its normal."""
+    n = normal[rows]
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(n, u)
+    d = anchor[np.maximum(nb, 0)] - anchor[rows][:, None, :]
+    return (np.einsum("nkj,nj->nk", d, u) >= 0).astype(np.int8) + 2 * (np.einsum("nkj,nj->nk", d, v) >= 0)
+
+
+def _sector_ici(r: np.ndarray, var: np.ndarray, w: np.ndarray, gamma: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One sector's LPA-ICI: per row, the mean of its first k weighted neighbours (k = 2, 4, 8, …) at the largest k
+    whose interval meets all smaller ones', its variance (inf: no neighbour) and k (0: none)."""
+    rows = np.arange(len(r))
+    count, total, var_sum = np.cumsum(w, axis=1), np.cumsum(w * r, axis=1), np.cumsum(w * var, axis=1)
+    est, est_var = np.zeros(len(r)), np.full(len(r), np.inf)
+    used = np.zeros(len(r), dtype=np.int64)
+    lo, hi = np.full(len(r), -np.inf), np.full(len(r), np.inf)
+    alive = np.ones(len(r), dtype=bool)
+    k = 2
+    while k <= r.shape[1]:
+        at = np.argmax(count >= k, axis=1)
+        alive &= count[:, -1] >= k
+        mk = total[rows, at] / k
+        sk = np.sqrt(var_sum[rows, at]) / k
+        lo_k, hi_k = np.maximum(lo, mk - gamma * sk), np.minimum(hi, mk + gamma * sk)
+        alive &= lo_k <= hi_k
+        if not alive.any():
+            break
+        est, est_var = np.where(alive, mk, est), np.where(alive, sk * sk, est_var)
+        used = np.where(alive, k, used)
+        lo, hi = np.where(alive, lo_k, lo), np.where(alive, hi_k, hi)
+        k *= 2
+    return est, est_var, used
+
+
+def _ici(offset: np.ndarray, variance: np.ndarray, nb: np.ndarray, sector: np.ndarray, gamma: float
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pooled offset, its variance and the neighbours pooled, per row of the neighbour table ``nb`` (the first
+    column the point itself): LPA-ICI in each quadrant ``sector``, the quadrants and the point fused by inverse
+    variance. At a change's edge the quadrants facing it stop early and weigh little, so the change does not
+    smear across the edge."""
+    valid = nb >= 0
+    safe = np.where(valid, nb, 0)
+    r, var = offset[safe], variance[safe]
+    near = np.where(valid[:, :CENTRE], r[:, :CENTRE], np.nan)
+    near_var = np.where(valid[:, :CENTRE], var[:, :CENTRE], np.nan)
+    centre, spread = np.nanmedian(near, axis=1), np.sqrt(np.nanmedian(near_var, axis=1))
+    # equal weights: a scanner's σ grows with the measured range, so inverse-variance weights would favour the
+    # points noise put nearer the sensor and bias the mean towards it (by σ²·4/r at r² noise: 0.06 σ at 4 m)
+    w = valid & (np.abs(r - centre[:, None]) <= TRIM_SIGMAS * spread[:, None])
+    # a point that is itself one of those lies on another surface than its neighbours (a part's point whose beam
+    # missed the part and met the floor): it keeps its own value rather than take theirs
+    w &= w[:, :1]
+    w[:, 0] = False  # the point itself enters the fusion once, not once per quadrant
+    precision = 1.0 / variance[nb[:, 0]]
+    weighted = offset[nb[:, 0]] * precision
+    used = np.ones(len(nb), dtype=np.int64)
+    for quadrant in range(4):
+        est, est_var, k = _sector_ici(r, var, w & (sector == quadrant), gamma)
+        has = k > 0
+        precision = precision + np.where(has, 1.0 / np.where(has, est_var, 1.0), 0.0)
+        weighted = weighted + np.where(has, est / np.where(has, est_var, 1.0), 0.0)
+        used += k
+    return weighted / precision, 1.0 / precision, used
+
+
+@dataclass(frozen=True)
+class PoolingParams:
+    """How far pooling reaches: at most ``neighbours`` points whose anchors lie within ``radius`` (twin units;
+    None: the radius of each point's own 99 % region along its largest axis),
+    scales chosen with intervals of ± ``gamma`` σ; anchors within ``reach_sigmas`` σ of their point."""
+
+    neighbours: int
+    radius: float | None
+    gamma: float
+    reach_sigmas: float
+
+
+def _safe_cos(cos: np.ndarray) -> np.ndarray:
+    """A line's cosine to a normal, kept off zero (a line along the surface meets it nowhere in particular)."""
+    return np.where(np.abs(cos) < MIN_COS, np.copysign(MIN_COS, cos), cos)
+
+
+def _pool(found: list[Anchors], params: PoolingParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point of all datasets: the pooled offset along its normal, its variance and the neighbours pooled."""
+    cat = {name: np.concatenate([getattr(a, name) for a in found]) for name in ("anchor", "normal", "offset",
+                                                                               "variance", "ok", "largest")}
+    rows = np.flatnonzero(cat["ok"])
+    radius = params.radius if params.radius is not None else np.sqrt(REGION_99 * cat["largest"])
+    radius = np.broadcast_to(radius, cat["ok"].shape)[rows]
+    anchor, normal = cat["anchor"][rows], cat["normal"][rows]
+    est = cat["offset"].copy()
+    est_var = cat["variance"].copy()
+    used = np.ones(len(est), dtype=np.int64)
+    for start in range(0, len(rows), CHUNK):
+        chunk = np.arange(start, min(start + CHUNK, len(rows)))
+        nb = _neighbour_table(anchor, normal, radius, chunk, params.neighbours)
+        glob = np.where(nb >= 0, rows[np.maximum(nb, 0)], -1)
+        sector = _sectors(cat["anchor"], cat["normal"], rows[chunk], glob)
+        e, v, u = _ici(cat["offset"], cat["variance"], glob, sector, params.gamma)
+        est[rows[chunk]], est_var[rows[chunk]], used[rows[chunk]] = e, v, u
+    return est, est_var, used
+
+
+def pooled_expectations(datasets: list[Dataset], stations: list[np.ndarray | None], scene: object, origin: np.ndarray,
+                        normals: list[np.ndarray], params: PoolingParams) -> tuple[list[Expectation], list[np.ndarray]]:
+    """The expectation of every point of ``datasets`` (point clouds with Gaussian covariances), pooled over all of
+    them, and per dataset how far from each point its pooling could reach (for a tile's halo)."""
+    covs = [np.asarray(ds.uncertainty.covariance(ds.n_elements), dtype=np.float64) for ds in datasets]
+    found = [surface_anchors(scene, origin, normals, ds.points, c, st, params.reach_sigmas)
+             for ds, c, st in zip(datasets, covs, stations, strict=True)]
+    est, est_var, used = _pool(found, params)
+    # the second pass anchors each point on the crossing nearest to its first expectation: where two surfaces lie
+    # within the noise along a beam, one point cannot tell which it is on, its neighbourhood can
+    at, targets = 0, []
+    for a in found:
+        sl = slice(at, at + len(a.ok))
+        at += len(a.ok)
+        # where the line meets the surface its neighbours put it: the offset's change over the cosine
+        cos = _safe_cos(np.einsum("ij,ij->i", a.normal, a.axis))
+        targets.append(np.where(a.ok, (a.offset - est[sl]) / cos, 0.0))
+    found = [surface_anchors(scene, origin, normals, ds.points, c, st, params.reach_sigmas, tg)
+             for ds, c, st, tg in zip(datasets, covs, stations, targets, strict=True)]
+    est, est_var, used = _pool(found, params)
+    sizes = np.array([ds.n_elements for ds in datasets])
+    largest = max((float(a.largest.max(initial=0.0)) for a in found), default=0.0)
+    slack = params.reach_sigmas * np.sqrt(largest)
+    widest = params.radius if params.radius is not None else np.sqrt(REGION_99 * largest)
+    out, reaches, at = [], [], 0
+    for ds, c, a, n in zip(datasets, covs, found, sizes, strict=True):
+        sl = slice(at, at + n)
+        at += n
+        pooled = a.ok & (used[sl] >= MIN_NEIGHBOURS)
+        # the expectation stays on the point's line (its beam): where the line meets the surface its neighbours
+        # put there. Across the line the point's own σ (small for a scanner); along it the pooled σ over the
+        # cosine, so its spread along the surface shrinks with the pooling too
+        cos = _safe_cos(np.einsum("ij,ij->i", a.normal, a.axis))
+        along = np.where(pooled, (a.offset - est[sl]) / cos, 0.0)
+        position = ds.points - along[:, None] * a.axis
+        aa = np.einsum("ni,nj->nij", a.axis, a.axis)
+        across = np.eye(3)[None] - aa
+        on_line = across @ c @ across + (est_var[sl] / cos**2)[:, None, None] * aa
+        # along the normal only the pooled variance: a line moved sideways meets the surface elsewhere, at the
+        # same offset
+        nn = np.einsum("ni,nj->nij", a.normal, a.normal)
+        tangent = np.eye(3)[None] - nn
+        cov_pooled = tangent @ on_line @ tangent + est_var[sl, None, None] * nn
+        cov_pooled = 0.5 * (cov_pooled + np.swapaxes(cov_pooled, 1, 2))
+        covariance = np.where(pooled[:, None, None], cov_pooled, c)
+        out.append(Expectation(position, covariance, np.where(pooled, used[sl], 1)))
+        # a neighbour's anchor lies within ``radius`` of this one's, each point within ``slack`` of its anchor, and
+        # the second pass's neighbours were anchored by their own first-pass neighbours
+        reaches.append(np.where(a.ok, 2 * widest + 3 * slack + np.linalg.norm(ds.points - a.anchor, axis=1), 0.0))
+    return out, reaches
+
+
+def expectations(ctx: StageContext, meshes: Any) -> dict[str, Expectation]:
+    """Per recent point dataset with Gaussian covariances, its points' neighbourhood expectations against the
+    twin's meshes (``meshes``: the stage's ReferenceMeshes); reported per dataset, and as neighbourhoods in tiles."""
+    p = ctx.params
+    chosen = [ds for ds in ctx["recent"] if ds.faces is None and isinstance(ds.uncertainty, GaussianUncertainty)]
+    skipped = sorted(ds.name for ds in ctx["recent"] if ds not in chosen)
+    if meshes is None or meshes.empty or not chosen:
+        why = ("the twin holds no visible mesh to anchor expectations on" if chosen
+               else "no recent point cloud with Gaussian covariances")
+        ctx.log.warning("neighbourhood expectation: %s; every point is judged by itself", why)
+        ctx.report(expectation={"pooled_share": 0.0, "why": why})
+        return {}
+    radius = None if p.pooling_radius is None else p.pooling_radius / UNITS[ctx.epoch.units]
+    normals = [ctx["reference"].items[i].dataset.facet_normals(unit=True)[vis] for i, vis in meshes.items]
+    stations = [ds.viewpoints[0] if ds.viewpoints is not None and len(ds.viewpoints) == 1 else None
+                for ds in chosen]
+    found, reaches = pooled_expectations(chosen, stations, meshes.scene, meshes.origin, normals,
+                                         PoolingParams(p.pooling_neighbours, radius, p.pooling_gamma,
+                                                       p.search_sigmas))
+    for ds, reach in zip(chosen, reaches, strict=True):
+        ctx.neighbourhoods(ds.points, reach)
+    pooled = np.concatenate([e.pooled for e in found])
+    ctx.report(expectation={
+        "pooled_share": round(float(np.mean(pooled > 1)), 4) if len(pooled) else 0.0,
+        "median_neighbours": int(np.median(pooled[pooled > 1])) if np.any(pooled > 1) else 1,
+        "neighbours_quartiles": [int(q) for q in np.percentile(pooled, [25, 50, 75])] if len(pooled) else [],
+        "per_point": skipped})
+    return {ds.name: e for ds, e in zip(chosen, found, strict=True)}

@@ -28,3 +28,16 @@ def cad_item(key: str, mesh: trimesh.Trimesh) -> CompositeItem:
     n = len(mesh.faces)
     return CompositeItem(key, ds, "E0", np.zeros(n, np.uint8), np.full(n, np.nan), np.zeros(n, np.int32),
                          np.ones(n, bool))
+
+
+def plant_room() -> list[trimesh.Trimesh]:
+    """Boxes of a plant room seen at many incidences: a floor, a back wall and three cabinets turned about z."""
+    parts = [trimesh.creation.box(extents=(6.0, 6.0, 0.1)), trimesh.creation.box(extents=(0.1, 6.0, 3.0))]
+    parts[0].apply_translation((0, 0, -0.05))
+    parts[1].apply_translation((-3.0, 0, 1.5))
+    for k, (x, y, turn) in enumerate(((-1.5, -1.5, 0.3), (-1.8, 1.2, 0.9), (0.2, 0.4, 0.0))):
+        box = trimesh.creation.box(extents=(0.8, 0.6, 1.2 + 0.3 * k))
+        box.apply_transform(trimesh.transformations.rotation_matrix(turn, (0, 0, 1)))
+        box.apply_translation((x, y, 0.6 + 0.15 * k))
+        parts.append(box)
+    return parts

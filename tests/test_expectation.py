@@ -148,10 +148,10 @@ def test_a_slab_under_the_noise_is_found_pooled_the_same_whole_or_in_tiles(regis
     from gdt_pipeline.sensors import PRESETS
     from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
     from gdt_pipeline.types import ChangeState
-    from tests.test_self_calibration import _room
+    from tests.rov_helpers import plant_room
     from twin_store import TwinStore
 
-    room = _room()
+    room = plant_room()
     trimesh.util.concatenate(room).export(tmp_path / "room.obj")
     slab = trimesh.creation.box(extents=(0.4, 0.4, 0.12)).apply_translation((0.6, -1.0, 0.06))
     eye = np.array([2.8, -2.5, 1.6])

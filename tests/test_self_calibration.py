@@ -14,7 +14,7 @@ from gdt_pipeline.simulation.family import scaled_profile
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
 from stages.uncertainty.self_calibration import FitData, calibrate_profile
 from stages.uncertainty.sensor_model import sensor_survey
-from tests.rov_helpers import cad_item, stage_ctx
+from tests.rov_helpers import cad_item, plant_room, stage_ctx
 
 
 def test_em_recovers_the_scales_with_a_fifth_of_the_points_changed() -> None:
@@ -36,23 +36,10 @@ def test_em_recovers_the_scales_with_a_fifth_of_the_points_changed() -> None:
     assert 0.95 < found.record["normalized_rms"] < 1.1
 
 
-def _room() -> list[trimesh.Trimesh]:
-    """Boxes of a plant room seen at many incidences: a floor, a back wall and three cabinets turned about z."""
-    parts = [trimesh.creation.box(extents=(6.0, 6.0, 0.1)), trimesh.creation.box(extents=(0.1, 6.0, 3.0))]
-    parts[0].apply_translation((0, 0, -0.05))
-    parts[1].apply_translation((-3.0, 0, 1.5))
-    for k, (x, y, turn) in enumerate(((-1.5, -1.5, 0.3), (-1.8, 1.2, 0.9), (0.2, 0.4, 0.0))):
-        box = trimesh.creation.box(extents=(0.8, 0.6, 1.2 + 0.3 * k))
-        box.apply_transform(trimesh.transformations.rotation_matrix(turn, (0, 0, 1)))
-        box.apply_translation((x, y, 0.6 + 0.15 * k))
-        parts.append(box)
-    return parts
-
-
 @pytest.mark.parametrize(("range_scale", "lateral_scale"), [(0.35, 0.8), (1.8, 1.2)])
 def test_sensor_model_fits_the_true_scanner_from_the_preset(registry, tmp_path, range_scale: float,
                                                             lateral_scale: float) -> None:
-    room = _room()
+    room = plant_room()
     new = trimesh.creation.box(extents=(0.5, 0.5, 0.5))  # not in the CAD: its points are changed
     new.apply_translation((0.5, -1.2, 0.25))
     base = PRESETS["tof_low_cost"]
@@ -113,7 +100,7 @@ def test_a_self_calibrated_run_is_the_same_whole_or_in_tiles(registry, tmp_path)
     from gdt_pipeline.runner import TilingOptions, run_workflow
     from twin_store import TwinStore
 
-    room = _room()
+    room = plant_room()
     trimesh.util.concatenate(room).export(tmp_path / "room.obj")
     true = PRESETS["tof_low_cost"].model_copy(update={"range_sigma": [c * 0.4 for c in (0.002, 0.0, 0.008)],
                                                       "lateral_sigma": [c * 0.4 for c in (0.002, 0.003)]})

@@ -77,6 +77,15 @@ def check_radius(tree: cKDTree, radius: float, stage: str, what: str) -> None:
                      f"wrong units is 1000× off), or the radius is set too large")
 
 
+def radius_within_pairs(tree: cKDTree, radius: float, floor: float) -> float:
+    """``radius``, or less (never under ``floor``) where a radius search at it would list over half ``MAX_PAIRS``
+    pairs: a default radius is brought within what ``check_radius`` accepts rather than refused there."""
+    n = int(tree.n)
+    while radius > floor and (int(tree.count_neighbors(tree, radius)) - n) / 2 > MAX_PAIRS / 2:
+        radius = max(0.7 * radius, floor)
+    return radius
+
+
 def expected_samples(ds: Dataset, spacing: float, elements: np.ndarray | None = None) -> float:
     """About how many points ``sample_surface`` returns for ``ds`` at ``spacing`` (its points, or area/spacing²)."""
     if ds.faces is None:

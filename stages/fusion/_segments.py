@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
 from gdt_pipeline import CompositeItem, Dataset, Segment
-from gdt_pipeline.geometry.extent import check_radius
+from gdt_pipeline.geometry.extent import check_radius, radius_within_pairs
 
 
 class PartParams(BaseModel):
@@ -85,7 +85,11 @@ def segment_labels(pos_a: np.ndarray, sig_a: np.ndarray, params: SegmentParams) 
         # a noisy scan's σ (30 cm for a ToF at 4.5 m) would join the whole scene: the σ term stops at 5 % of the
         # elements' extent, where the radius guard below would refuse a default it set itself
         extent = float(np.linalg.norm(np.ptp(pos_a, axis=0)))
-        radius = max(3.0 * float(np.median(gap)), min(1.5 * float(np.median(sig_a)), 0.05 * extent), 1e-9)
+        floor = max(3.0 * float(np.median(gap)), 1e-9)
+        radius = max(floor, min(1.5 * float(np.median(sig_a)), 0.05 * extent))
+        # 50 k changed points of a dense noisy scan at 5 % of a 4.6 m scene are 10⁸ pairs: a default the guard
+        # below would refuse is narrowed to what it accepts (a radius the workflow sets is kept, and checked)
+        radius = radius_within_pairs(tree, radius, floor)
     # a units mistake makes the radius span the whole data: refuse before the pair list takes all memory
     check_radius(tree, radius, "fusion", "grouping changed elements into segments (`segment_radius`)")
     pairs = tree.query_pairs(radius, output_type="ndarray")

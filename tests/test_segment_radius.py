@@ -28,7 +28,7 @@ def test_a_dense_noisy_scans_default_radius_is_narrowed_within_the_pair_limit() 
     # two dense patches of 15 000 changed points 2 m apart in a 5.7 m scene: 5 % of the extent (29 cm) spans each
     # patch whole, 2.2e8 pairs, which the guard refused
     a = np.column_stack([rng.uniform(0, 0.3, (15_000, 2)), rng.normal(0, 0.01, 15_000)])
-    b = a + [2.0, 2.0, 0.0]
+    b = a + np.array([2.0, 2.0, 0.0])
     corner = np.array([[-1.0, -1.0, -0.5], [3.0, 3.0, 0.5]])
     pos = np.vstack([a, b, corner])
     label = segment_labels(pos, np.full(len(pos), 0.5), SegmentParams())

@@ -9,19 +9,16 @@ parameter choice looked at.
 
 from __future__ import annotations
 
-import argparse
 import json
-import shutil
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import trimesh
+from family_bench import run_family
 
-from gdt_pipeline.evaluation.family import scene_seed
 from gdt_pipeline.evaluation.family_scoring import score_scene
-from gdt_pipeline.plugins import load_registry
 from gdt_pipeline.runner import run_workflow
 from gdt_pipeline.simulation.family import PROFILE_FILE, make_family_scene
 
@@ -86,26 +83,11 @@ def run_scene(root: Path, seed: int, registry: object) -> dict:
     return row
 
 
-def main() -> None:
-    """Run the family and print per scene and over the scenes."""
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=9043)
-    ap.add_argument("--out", type=Path, default=Path("out/bench/expectation"))
-    args = ap.parse_args()
-    registry = load_registry()
-    rows = []
-    for k in range(args.scenes):
-        root = args.out / f"scene_{k:03d}"
-        shutil.rmtree(root, ignore_errors=True)
-        row = run_scene(root, scene_seed(args.seed, k), registry)
-        rows.append(row)
-        f1 = "  ".join(f"{n}: {v:.3f}" if v is not None else f"{n}: -" for n, v in row["f1"].items())
-        print(f"scene {k:2d} seed {row['seed']}: {f1}  C2C best τ*: {row.get('c2c_best') or 0:.3f}  "
-              f"M3C2 best*: {row.get('m3c2_best') or 0:.3f}  "
-              f"({sum(row['seconds'].values()):.0f} s)", flush=True)
-    print_summary(rows)
-    (args.out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
+def _line(row: dict) -> str:
+    """One scene's progress line."""
+    f1 = "  ".join(f"{n}: {v:.3f}" if v is not None else f"{n}: -" for n, v in row["f1"].items())
+    return (f"{f1}  C2C best τ*: {row.get('c2c_best') or 0:.3f}  M3C2 best*: {row.get('m3c2_best') or 0:.3f}  "
+            f"({sum(row['seconds'].values()):.0f} s)")
 
 
 def print_summary(rows: list[dict]) -> None:
@@ -128,4 +110,4 @@ def print_summary(rows: list[dict]) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_family(__doc__, 9043, "out/bench/expectation", run_scene, _line, print_summary))

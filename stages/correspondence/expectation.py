@@ -41,6 +41,8 @@ import numpy as np
 from gdt_pipeline import Dataset, GaussianUncertainty, StageContext
 from gdt_pipeline.names import UNITS
 
+from .pooling_kernel import pool_rows
+
 MIN_NEIGHBOURS = 8  # fewer pooled: the point keeps its own value
 MIN_COS = 0.05
 COS_CONE = 0.5  # neighbours facing within 60°: a plate's two faces and a box's sides never mix
@@ -145,93 +147,6 @@ def surface_anchors(scene: object, origin: np.ndarray, normals: list[np.ndarray]
     return Anchors(anchor, normal, np.where(ok, offset, 0.0), variance, ok, axis, w[:, -1])
 
 
-def _neighbour_table(anchor: np.ndarray, normal: np.ndarray, radius: np.ndarray, rows: np.ndarray, k: int
-                     ) -> np.ndarray:
-    """Per row of ``rows``: its ``k`` nearest anchors within the row's ``radius`` on a surface facing within 60° of
-    its own (a plate's two faces and a box's sides never mix), nearest first; −1 where there are fewer."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(anchor)
-    dist, idx = tree.query(anchor[rows], k=min(k, len(anchor)), distance_upper_bound=float(radius[rows].max()),
-                           workers=-1)
-    dist, idx = dist.reshape(len(rows), -1), idx.reshape(len(rows), -1)
-    found = idx < len(anchor)
-    safe = np.where(found, idx, 0)
-    found &= (dist <= radius[rows][:, None]) & (np.einsum("nkj,nj->nk", normal[safe], normal[rows]) >= COS_CONE)
-    # keep the order by distance with the dropped ones last: the scales count neighbours in that order
-    order = np.argsort(~found, axis=1, kind="stable")
-    return np.where(np.take_along_axis(found, order, axis=1), np.take_along_axis(idx, order, axis=1), -1)
-
-
-def _sectors(anchor: np.ndarray, normal: np.ndarray, rows: np.ndarray, nb: np.ndarray) -> np.ndarray:
-    """Per neighbour of each row, its quadrant (0–3) about the row's anchor in the tangent plane of its normal."""
-    n = normal[rows]
-    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    u = np.cross(n, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.cross(n, u)
-    d = anchor[np.maximum(nb, 0)] - anchor[rows][:, None, :]
-    return (np.einsum("nkj,nj->nk", d, u) >= 0).astype(np.int8) + 2 * (np.einsum("nkj,nj->nk", d, v) >= 0)
-
-
-def _sector_ici(r: np.ndarray, var: np.ndarray, w: np.ndarray, gamma: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One sector's LPA-ICI: per row, the mean of its first k weighted neighbours (k = 2, 4, 8, …) at the largest k
-    whose interval meets all smaller ones', its variance (inf: no neighbour) and k (0: none)."""
-    rows = np.arange(len(r))
-    count, total, var_sum = np.cumsum(w, axis=1), np.cumsum(w * r, axis=1), np.cumsum(w * var, axis=1)
-    est, est_var = np.zeros(len(r)), np.full(len(r), np.inf)
-    used = np.zeros(len(r), dtype=np.int64)
-    lo, hi = np.full(len(r), -np.inf), np.full(len(r), np.inf)
-    alive = np.ones(len(r), dtype=bool)
-    k = 2
-    while k <= r.shape[1]:
-        at = np.argmax(count >= k, axis=1)
-        alive &= count[:, -1] >= k
-        mk = total[rows, at] / k
-        sk = np.sqrt(var_sum[rows, at]) / k
-        lo_k, hi_k = np.maximum(lo, mk - gamma * sk), np.minimum(hi, mk + gamma * sk)
-        alive &= lo_k <= hi_k
-        if not alive.any():
-            break
-        est, est_var = np.where(alive, mk, est), np.where(alive, sk * sk, est_var)
-        used = np.where(alive, k, used)
-        lo, hi = np.where(alive, lo_k, lo), np.where(alive, hi_k, hi)
-        k *= 2
-    return est, est_var, used
-
-
-def _ici(offset: np.ndarray, variance: np.ndarray, nb: np.ndarray, sector: np.ndarray, gamma: float
-         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pooled offset, its variance and the neighbours pooled, per row of the neighbour table ``nb`` (the first
-    column the point itself): LPA-ICI in each quadrant ``sector``, the quadrants and the point fused by inverse
-    variance. At a change's edge the quadrants facing it stop early and weigh little, so the change does not
-    smear across the edge."""
-    valid = nb >= 0
-    safe = np.where(valid, nb, 0)
-    r, var = offset[safe], variance[safe]
-    near = np.where(valid[:, :CENTRE], r[:, :CENTRE], np.nan)
-    near_var = np.where(valid[:, :CENTRE], var[:, :CENTRE], np.nan)
-    centre, spread = np.nanmedian(near, axis=1), np.sqrt(np.nanmedian(near_var, axis=1))
-    # equal weights: a scanner's σ grows with the measured range, so inverse-variance weights would favour the
-    # points noise put nearer the sensor and bias the mean towards it (by σ²·4/r at r² noise: 0.06 σ at 4 m)
-    w = valid & (np.abs(r - centre[:, None]) <= TRIM_SIGMAS * spread[:, None])
-    # a point that is itself one of those lies on another surface than its neighbours (a part's point whose beam
-    # missed the part and met the floor): it keeps its own value rather than take theirs
-    w &= w[:, :1]
-    w[:, 0] = False  # the point itself enters the fusion once, not once per quadrant
-    precision = 1.0 / variance[nb[:, 0]]
-    weighted = offset[nb[:, 0]] * precision
-    used = np.ones(len(nb), dtype=np.int64)
-    for quadrant in range(4):
-        est, est_var, k = _sector_ici(r, var, w & (sector == quadrant), gamma)
-        has = k > 0
-        precision = precision + np.where(has, 1.0 / np.where(has, est_var, 1.0), 0.0)
-        weighted = weighted + np.where(has, est / np.where(has, est_var, 1.0), 0.0)
-        used += k
-    return weighted / precision, 1.0 / precision, used
-
-
 @dataclass(frozen=True)
 class PoolingParams:
     """How far pooling reaches: at most ``neighbours`` points whose anchors lie within ``radius`` (twin units;
@@ -251,22 +166,25 @@ def _safe_cos(cos: np.ndarray) -> np.ndarray:
 
 def _pool(found: list[Anchors], params: PoolingParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per point of all datasets: the pooled offset along its normal, its variance and the neighbours pooled."""
+    from scipy.spatial import cKDTree
+
     cat = {name: np.concatenate([getattr(a, name) for a in found]) for name in ("anchor", "normal", "offset",
                                                                                "variance", "ok", "largest")}
     rows = np.flatnonzero(cat["ok"])
     radius = params.radius if params.radius is not None else np.sqrt(REGION_99 * cat["largest"])
-    radius = np.broadcast_to(radius, cat["ok"].shape)[rows]
-    anchor, normal = cat["anchor"][rows], cat["normal"][rows]
-    est = cat["offset"].copy()
-    est_var = cat["variance"].copy()
+    radius = np.ascontiguousarray(np.broadcast_to(radius, cat["ok"].shape)[rows], dtype=np.float64)
+    est, est_var = cat["offset"].copy(), cat["variance"].copy()
     used = np.ones(len(est), dtype=np.int64)
+    if not len(rows):
+        return est, est_var, used
+    tree = cKDTree(cat["anchor"][rows])
     for start in range(0, len(rows), CHUNK):
         chunk = np.arange(start, min(start + CHUNK, len(rows)))
-        nb = _neighbour_table(anchor, normal, radius, chunk, params.neighbours)
-        glob = np.where(nb >= 0, rows[np.maximum(nb, 0)], -1)
-        sector = _sectors(cat["anchor"], cat["normal"], rows[chunk], glob)
-        e, v, u = _ici(cat["offset"], cat["variance"], glob, sector, params.gamma)
-        est[rows[chunk]], est_var[rows[chunk]], used[rows[chunk]] = e, v, u
+        dist, nb = tree.query(tree.data[chunk], k=min(params.neighbours, len(rows)),
+                              distance_upper_bound=float(radius[chunk].max()), workers=-1)
+        pool_rows(chunk, nb.reshape(len(chunk), -1), dist.reshape(len(chunk), -1), radius, rows, cat["anchor"],
+                  cat["normal"], cat["offset"], cat["variance"], params.gamma, COS_CONE, CENTRE, TRIM_SIGMAS,
+                  est, est_var, used)
     return est, est_var, used
 
 

@@ -50,7 +50,7 @@ TRIM_SIGMAS = 3.5  # neighbours farther than this off the median of the nearest 
 CENTRE = 32  # a median of 8 is off by 0.44 σ, which shifts the trimming window and adds to the mean's variance
 ISOTROPIC_RATIO = 2.0  # largest / second variance below this: no dominant axis, the closest point anchors
 REGION_99 = 11.345  # χ²(3) at 0.99: the squared radius, in σ, of a point's 99 % region
-CHUNK = 8192  # queries pooled at a time: bounds the (chunk × neighbours) work arrays to a few MB each
+CHUNK = 8192  # queries pooled at a time: bounds the kd-tree's (chunk × neighbours) answer to 33 MB at 256
 
 
 @dataclass(frozen=True)
@@ -115,7 +115,7 @@ def _crossings(scene: object, origin: np.ndarray, pos: np.ndarray, axis: np.ndar
 def surface_anchors(scene: object, origin: np.ndarray, normals: list[np.ndarray], pos: np.ndarray, cov: np.ndarray,
                     station: np.ndarray | None, reach_sigmas: float, target: np.ndarray | None = None) -> Anchors:
     """Each point's anchor on the meshes of ``scene`` (an Open3D raycasting scene about ``origin``; ``normals``:
-    each geometry's facet normals): with a station, the nearest crossing of its beam with a facet facing the
+    each geometry's facet normals): with a station, the first crossing of its beam with a facet facing the
     station; without, the nearest crossing along Σ's largest axis, or the closest point when Σ has no dominant
     axis. Anchors lie within ``reach_sigmas`` σ of the point; where several crossings do, the one nearest to
     ``target`` along the line (default: the first a beam meets, or without a station the nearest)."""

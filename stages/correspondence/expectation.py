@@ -18,8 +18,9 @@ Per point P with covariance Σ:
    The scale is chosen by the intersection of confidence intervals (Katkovnik's LPA-ICI): the largest whose
    interval (± ``gamma`` σ) still meets all smaller ones'. The quadrants and the point itself are fused by
    inverse variance; where a quadrant runs into a change's edge its estimates drift, it stops early and weighs
-   little. A point that is itself more than 3.5 σ off its neighbours' median lies on another surface: it keeps
-   its own value;
+   little. Where the members scatter about their quadrants' means more than their σ promise (χ²/dof > 1: two
+   surfaces mixed, a bend), the pooled variance grows by that factor. A point that is itself more than 3.5 σ off
+   its neighbours' median lies on another surface: it keeps its own value;
 5. a second pass anchors each point on the crossing of its beam nearest to where its neighbours put the surface
    (two surfaces within the noise along one beam: one point cannot tell which it is on, its neighbours can) and
    pools again;

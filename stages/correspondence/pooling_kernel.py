@@ -51,6 +51,10 @@ def _pool_one(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points:
         return offset[g], 1.0 / precision, used
     u, v = _tangent_basis(normal[g])
     count, total, var_sum = np.zeros(4, np.int64), np.zeros(4), np.zeros(4)
+    # Σ δ²/σ², Σ δ/σ², Σ 1/σ² per quadrant, and as they stood at its chosen scale: the members' scatter about the
+    # quadrant's mean, against what their σ promise
+    s2, s1, s0 = np.zeros(4), np.zeros(4), np.zeros(4)
+    kept2, kept1, kept0 = np.zeros(4), np.zeros(4), np.zeros(4)
     alive = np.ones(4, dtype=np.bool_)
     lo, hi = np.full(4, -np.inf), np.full(4, np.inf)
     est, est_var, scale = np.zeros(4), np.full(4, np.inf), np.zeros(4, np.int64)
@@ -63,6 +67,9 @@ def _pool_one(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points:
         count[q] += 1
         total[q] += offset[big]
         var_sum[q] += variance[big]
+        s2[q] += offset[big] * offset[big] / variance[big]
+        s1[q] += offset[big] / variance[big]
+        s0[q] += 1.0 / variance[big]
         k = count[q]
         if not alive[q] or k < 2 or (k & (k - 1)) != 0:  # the scales: 2, 4, 8, … members of the quadrant
             continue
@@ -72,12 +79,19 @@ def _pool_one(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points:
             alive[q] = False
             continue
         lo[q], hi[q], est[q], est_var[q], scale[q] = lo_k, hi_k, mk, sk * sk, k
+        kept2[q], kept1[q], kept0[q] = s2[q], s1[q], s0[q]
+    chi2 = dof = 0.0
     for q in range(4):
         if scale[q] > 0:
             precision += 1.0 / est_var[q]
             weighted += est[q] / est_var[q]
             used += scale[q]
-    return weighted / precision, 1.0 / precision, used
+            chi2 += kept2[q] - 2.0 * est[q] * kept1[q] + est[q] * est[q] * kept0[q]
+            dof += scale[q] - 1
+    # where the members scatter more than their σ promise (two surfaces mixed, a bend, an edge, σ too small), the
+    # pooled variance grows by that factor: the issue's "grows back where the surface bends"
+    inflate = max(1.0, chi2 / dof) if dof > 0 else 1.0
+    return weighted / precision, inflate / precision, used
 
 
 @njit(cache=True, parallel=True)

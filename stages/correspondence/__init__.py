@@ -82,8 +82,9 @@ class DirectedParams(BaseModel):
         "point", description="What a recent point is judged by: its own position and covariance (the per-point "
                              "test), or the expectation of the twin's surface it lies on, pooled over its "
                              "neighbours (dense noisy clouds against meshes; docs/distances.md).")
-    pooling_neighbours: PositiveInt = Field(256, ge=8, description="Neighbours a point's expectation pools at most "
-                                                                   "(scales 8, 16, … up to this).")
+    pooling_neighbours: PositiveInt = Field(256, ge=8, description="Nearest neighbours a point's expectation "
+                                                                   "draws on (in four quadrants, each pooled at 2, "
+                                                                   "4, 8, … of its own).")
     pooling_radius: PositiveFloat | None = Field(
         None, description="Metres: neighbours' anchors on the twin's surface lie within this of the point's own. "
                           "Default: the radius of the point's own 99 % region (wide for noisy points, narrow for "

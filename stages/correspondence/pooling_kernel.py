@@ -24,16 +24,16 @@ def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True)
-def _pool_one(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points: int, rows: np.ndarray,
-              anchor: np.ndarray, normal: np.ndarray, offset: np.ndarray, variance: np.ndarray, gamma: float,
-              cone: float, centre_count: int, trim: float) -> tuple[float, float, int]:
-    """One point's pooled offset, its variance and the neighbours pooled (see ``pool_rows``)."""
-    k_max = len(nb)
-    member = np.empty(k_max, dtype=np.int64)
+def _members(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points: int, rows: np.ndarray,
+             normal: np.ndarray, offset: np.ndarray, variance: np.ndarray, cone: float, centre_count: int
+             ) -> tuple[np.ndarray, int, float, float]:
+    """The neighbours within ``radius`` facing within the cone, nearest first (point numbering), how many, and the
+    median offset and √(median variance) of the nearest ``centre_count`` of them."""
+    member = np.empty(len(nb), dtype=np.int64)
     near_off = np.empty(centre_count)
     near_var = np.empty(centre_count)
     m = n_near = 0
-    for c in range(k_max):
+    for c in range(len(nb)):
         j = nb[c]
         if j >= n_points or dist[c] > radius:
             continue
@@ -45,7 +45,16 @@ def _pool_one(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points:
             n_near += 1
         member[m] = big
         m += 1
-    centre, spread = _median(near_off, n_near), np.sqrt(_median(near_var, n_near))
+    return member, m, _median(near_off, n_near), np.sqrt(_median(near_var, n_near))
+
+
+@njit(cache=True)
+def _pool_one(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points: int, rows: np.ndarray,
+              anchor: np.ndarray, normal: np.ndarray, offset: np.ndarray, variance: np.ndarray, gamma: float,
+              cone: float, centre_count: int, trim: float) -> tuple[float, float, int]:
+    """One point's pooled offset, its variance and the neighbours pooled (see ``pool_rows``)."""
+    member, m, centre, spread = _members(g, nb, dist, radius, n_points, rows, normal, offset, variance, cone,
+                                         centre_count)
     precision, weighted, used = 1.0 / variance[g], offset[g] / variance[g], 1
     if abs(offset[g] - centre) > trim * spread:  # the point lies on another surface than its neighbours
         return offset[g], 1.0 / precision, used

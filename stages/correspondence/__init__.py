@@ -120,9 +120,10 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
         # the density from the whole epoch (a tile holds some facets only); facets sampled by their own hash
         density = p.sample_density or ctx.survey.get("facet_density", {}).get(ds.name)
         element, qpos = query_samples(ds, _sample_seed(ctx), density, p.max_samples_per_facet)
-        qcov = np.asarray(ds.uncertainty.covariance(ds.n_elements))[element]
         if ds.name in expected:
             qpos, qcov = expected[ds.name].position[element], expected[ds.name].covariance[element]
+        else:
+            qcov = np.asarray(ds.uncertainty.covariance(ds.n_elements))[element]
         parts = []
         if ref_pts is not None and not ref_pts.empty:
             parts.append(point_to_point(qpos, qcov, ref_pts, q99, p.max_components, element))

@@ -78,48 +78,32 @@ class Expectation:
     pooled: np.ndarray
 
 
-def _crossings(scene: object, origin: np.ndarray, pos: np.ndarray, axis: np.ndarray, reach: np.ndarray,
-               normals: list[np.ndarray], facing: bool, target: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Per point, the crossing of the line through it along ``axis`` with the meshes within ``reach`` of it that
-    lies nearest to ``target`` (a distance along the line back from the point; None: the point itself, or with
-    ``facing`` the first crossing along ``axis``); with ``facing``, only facets whose normal opposes ``axis`` (the
-    side a sensor looking along it sees). The signed distance from the crossing to the point along the line (inf:
-    none) and the facet's normal."""
-    import open3d as o3d
+@dataclass(frozen=True)
+class Lines:
+    """Per point of one dataset, the line its offset is taken along and where that line crosses the twin's meshes
+    within reach, cast once for both passes: the crossings (``ray``: the point, ``along``: point minus crossing
+    along the line, ``normal``: the facet's) and, for points with no dominant axis, their closest points
+    (``closest_rows``, ``closest``, ``closest_normal``, ``closest_distance``)."""
 
-    start = (pos - axis * reach[:, None] - origin).astype(np.float32)
-    ans = scene.list_intersections(o3d.core.Tensor(np.hstack([start, axis.astype(np.float32)])))
-    ray = ans["ray_ids"].numpy().astype(np.int64)
-    t = ans["t_hit"].numpy().astype(np.float64)
-    geom, prim = ans["geometry_ids"].numpy().astype(np.int64), ans["primitive_ids"].numpy().astype(np.int64)
-    n = np.zeros((len(ray), 3))
-    for g, table in enumerate(normals):
-        at = geom == g
-        n[at] = table[prim[at]]
-    along = reach[ray] - t  # point minus crossing, along the axis
-    ok = np.abs(along) <= reach[ray]
-    if facing:
-        ok &= np.einsum("ij,ij->i", n, axis[ray]) < 0
-    ray, along, n = ray[ok], along[ok], n[ok]
-    # without a target, seen from a station: the first facing crossing, the one a beam meets first. The nearest to
-    # the point would move points far behind a thin part onto the floor behind it, cut one tail of the part's
-    # offsets and bias their mean towards the sensor
-    key = -along if target is None and facing else np.abs(along - (0.0 if target is None else target[ray]))
-    order = np.lexsort((key, ray))
-    first = order[np.r_[True, ray[order][1:] != ray[order][:-1]]] if len(order) else order
-    dist = np.full(len(pos), np.inf)
-    normal = np.zeros_like(pos)
-    dist[ray[first]], normal[ray[first]] = along[first], n[first]
-    return dist, normal
+    pos: np.ndarray
+    cov: np.ndarray
+    axis: np.ndarray
+    largest: np.ndarray
+    facing: bool
+    ray: np.ndarray
+    along: np.ndarray
+    normal: np.ndarray
+    closest_rows: np.ndarray
+    closest: np.ndarray
+    closest_normal: np.ndarray
 
 
-def surface_anchors(scene: object, origin: np.ndarray, normals: list[np.ndarray], pos: np.ndarray, cov: np.ndarray,
-                    station: np.ndarray | None, reach_sigmas: float, target: np.ndarray | None = None) -> Anchors:
-    """Each point's anchor on the meshes of ``scene`` (an Open3D raycasting scene about ``origin``; ``normals``:
-    each geometry's facet normals): with a station, the first crossing of its beam with a facet facing the
-    station; without, the nearest crossing along Σ's largest axis, or the closest point when Σ has no dominant
-    axis. Anchors lie within ``reach_sigmas`` σ of the point; where several crossings do, the one nearest to
-    ``target`` along the line (default: the first a beam meets, or without a station the nearest)."""
+def cast_lines(scene: object, origin: np.ndarray, normals: list[np.ndarray], pos: np.ndarray, cov: np.ndarray,
+               station: np.ndarray | None, reach_sigmas: float) -> Lines:
+    """Each point's line and its crossings with the meshes of ``scene`` (an Open3D raycasting scene about
+    ``origin``; ``normals``: each geometry's facet normals) within ``reach_sigmas`` σ: with a station its beam,
+    crossings only with facets facing the station; without, Σ's largest axis, or the closest point when Σ has no
+    dominant axis."""
     import open3d as o3d
 
     w, v = np.linalg.eigh(cov)
@@ -128,24 +112,56 @@ def surface_anchors(scene: object, origin: np.ndarray, normals: list[np.ndarray]
         axis = pos - station
         axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-300)
     else:
-        axis = v[:, :, -1]
-    along, normal = _crossings(scene, origin, pos, axis, reach, normals, station is not None, target)
-    anchor = pos - axis * np.where(np.isfinite(along), along, 0.0)[:, None]
-    iso = (w[:, -1] < ISOTROPIC_RATIO * w[:, -2]) if station is None else np.zeros(len(pos), dtype=bool)
-    if iso.any():
-        ans = scene.compute_closest_points(o3d.core.Tensor((pos[iso] - origin).astype(np.float32)))
-        pts = ans["points"].numpy().astype(np.float64) + origin
-        d = np.linalg.norm(pts - pos[iso], axis=1)
-        rows = np.flatnonzero(iso)
-        along[rows] = np.where(d <= reach[iso], d, np.inf)
-        anchor[rows], normal[rows] = pts, ans["primitive_normals"].numpy()
-        axis = axis.copy()
-        axis[rows] = normal[rows]  # the closest point lies along the normal: that is the line the offset moves on
-    ok = np.isfinite(along)
+        axis = v[:, :, -1].copy()
+    start = (pos - axis * reach[:, None] - origin).astype(np.float32)
+    ans = scene.list_intersections(o3d.core.Tensor(np.hstack([start, axis.astype(np.float32)])))
+    ray = ans["ray_ids"].numpy().astype(np.int64)
+    geom, prim = ans["geometry_ids"].numpy().astype(np.int64), ans["primitive_ids"].numpy().astype(np.int64)
+    n = np.zeros((len(ray), 3))
+    for g, table in enumerate(normals):
+        at = geom == g
+        n[at] = table[prim[at]]
+    along = reach[ray] - ans["t_hit"].numpy().astype(np.float64)
+    ok = np.abs(along) <= reach[ray]
+    if station is not None:  # the side a sensor looking along the beam sees
+        ok &= np.einsum("ij,ij->i", n, axis[ray]) < 0
+    rows = np.flatnonzero(w[:, -1] < ISOTROPIC_RATIO * w[:, -2]) if station is None else np.zeros(0, np.int64)
+    closest, closest_normal = np.zeros((len(rows), 3)), np.zeros((len(rows), 3))
+    if len(rows):
+        near = scene.compute_closest_points(o3d.core.Tensor((pos[rows] - origin).astype(np.float32)))
+        closest = near["points"].numpy().astype(np.float64) + origin
+        closest_normal = near["primitive_normals"].numpy().astype(np.float64)
+        far = np.linalg.norm(closest - pos[rows], axis=1) > reach[rows]
+        closest[far] = np.nan
+        axis[rows] = closest_normal  # the closest point lies along the normal: the line the offset moves on
+    return Lines(pos, cov, axis, w[:, -1], station is not None, ray[ok], along[ok], n[ok], rows, closest,
+                 closest_normal)
+
+
+def surface_anchors(lines: Lines, target: np.ndarray | None = None) -> Anchors:
+    """Each point's anchor: of its line's crossings, the one nearest to ``target`` (a distance along the line back
+    from the point); without a target the first a beam meets, or without a station the nearest to the point."""
+    ray, along = lines.ray, lines.along
+    # seen from a station, the first facing crossing: the nearest to the point would move points far behind a thin
+    # part onto the floor behind it, cut one tail of the part's offsets and bias their mean towards the sensor
+    key = -along if target is None and lines.facing else np.abs(along - (0.0 if target is None else target[ray]))
+    order = np.lexsort((key, ray))
+    first = order[np.r_[True, ray[order][1:] != ray[order][:-1]]] if len(order) else order
+    pos = lines.pos
+    dist = np.full(len(pos), np.inf)
+    normal = np.zeros_like(pos)
+    dist[ray[first]], normal[ray[first]] = along[first], lines.normal[first]
+    anchor = pos - lines.axis * np.where(np.isfinite(dist), dist, 0.0)[:, None]
+    rows = lines.closest_rows
+    if len(rows):
+        found = np.isfinite(lines.closest[:, 0])
+        dist[rows] = np.where(found, 0.0, np.inf)
+        anchor[rows], normal[rows] = np.where(found[:, None], lines.closest, pos[rows]), lines.closest_normal
+    ok = np.isfinite(dist)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
     offset = np.einsum("ij,ij->i", pos - anchor, normal)
-    variance = np.einsum("ni,nij,nj->n", normal, cov, normal)
-    return Anchors(anchor, normal, np.where(ok, offset, 0.0), variance, ok, axis, w[:, -1])
+    variance = np.einsum("ni,nij,nj->n", normal, lines.cov, normal)
+    return Anchors(anchor, normal, np.where(ok, offset, 0.0), variance, ok, lines.axis, lines.largest)
 
 
 @dataclass(frozen=True)
@@ -194,8 +210,9 @@ def pooled_expectations(datasets: list[Dataset], stations: list[np.ndarray | Non
     """The expectation of every point of ``datasets`` (point clouds with Gaussian covariances), pooled over all of
     them, and per dataset how far from each point its pooling could reach (for a tile's halo)."""
     covs = [np.asarray(ds.uncertainty.covariance(ds.n_elements), dtype=np.float64) for ds in datasets]
-    found = [surface_anchors(scene, origin, normals, ds.points, c, st, params.reach_sigmas)
+    lines = [cast_lines(scene, origin, normals, ds.points, c, st, params.reach_sigmas)
              for ds, c, st in zip(datasets, covs, stations, strict=True)]
+    found = [surface_anchors(li) for li in lines]
     est, est_var, used = _pool(found, params)
     # the second pass anchors each point on the crossing nearest to its first expectation: where two surfaces lie
     # within the noise along a beam, one point cannot tell which it is on, its neighbourhood can
@@ -206,8 +223,7 @@ def pooled_expectations(datasets: list[Dataset], stations: list[np.ndarray | Non
         # where the line meets the surface its neighbours put it: the offset's change over the cosine
         cos = _safe_cos(np.einsum("ij,ij->i", a.normal, a.axis))
         targets.append(np.where(a.ok, (a.offset - est[sl]) / cos, 0.0))
-    found = [surface_anchors(scene, origin, normals, ds.points, c, st, params.reach_sigmas, tg)
-             for ds, c, st, tg in zip(datasets, covs, stations, targets, strict=True)]
+    found = [surface_anchors(li, tg) for li, tg in zip(lines, targets, strict=True)]
     est, est_var, used = _pool(found, params)
     sizes = np.array([ds.n_elements for ds in datasets])
     largest = max((float(a.largest.max(initial=0.0)) for a in found), default=0.0)

@@ -18,6 +18,7 @@ from gdt_pipeline.sensors import PRESETS, SensorProfile, load_profile
 
 from ._select import map_selected
 from .estimators import beam_covariances
+from .incidence import surface_cosines
 from .self_calibration import beam_hits, calibrate_profile, fit_data, joined, known_surfaces
 
 
@@ -30,6 +31,10 @@ class SensorModelParams(BaseModel):
                                           description="Sensor position; default: the input's single viewpoint.")
     normal_neighbours: PositiveInt = Field(20, description="Neighbours for point-cloud normals (incidence angle).")
     incidence: bool = Field(True, description="Scale the range noise by 1/cos(incidence).")
+    incidence_normals: Literal["auto", "cloud"] = Field(
+        "auto", description="auto: a point whose beam crosses a twin facet (CAD or an earlier mesh epoch) within "
+                            "its 3 σ takes that facet's incidence, the others the cloud's normals; cloud: always "
+                            "the cloud's PCA normals (docs/uncertainty.md).")
     datasets: list[str] | None = Field(None, description="Apply only to these recent datasets (default: all).")
     self_calibrate: bool = Field(False, description="Fit the profile's range and lateral scales to this epoch's "
                                                     "points on the twin's meshes (CAD or earlier mesh epochs) first; "
@@ -88,6 +93,10 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
         ctx.report(self_calibration=ctx.survey["self_calibration"])
     units = ctx.epoch.units
 
+    surfaces = known_surfaces(ctx.get("reference")) if ctx.params.incidence_normals == "auto" else []
+    shift = np.zeros(3) if ctx.epoch.origin is None else np.asarray(ctx.epoch.origin, dtype=np.float64)
+    on_twin: list[float] = []
+
     def estimate(ds: Dataset) -> Dataset:
         origin = station(ds, ctx.params.viewpoint)
         pos = ds.element_positions()
@@ -95,14 +104,26 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
         beam_range = np.linalg.norm(beam, axis=1)
         cos = None
         if ctx.params.incidence:
-            if ds.faces is not None:
-                normals = ds.facet_normals(unit=True)
-            else:
-                normals = estimate_normals(ds.points, ctx.params.normal_neighbours, ctx.epoch.origin)
-                if ctx.tile is not None:  # in a tile: the runner checks that every neighbourhood was whole
-                    ctx.neighbourhoods(ds.points, knn_reach(ds.points, ctx.params.normal_neighbours))
-            cos = np.einsum("ij,ij->i", normals, beam / np.maximum(beam_range[:, None], 1e-300))
+            cos = np.full(len(pos), np.nan)
+            if ds.faces is None and surfaces:
+                cos, reach = surface_cosines(surfaces, origin, pos, profile, units, shift)
+                ctx.neighbourhoods(ds.points, reach)
+                on_twin.append(float(np.mean(np.isfinite(cos))) if len(cos) else 0.0)
+            if not np.all(np.isfinite(cos)):
+                cos = np.where(np.isfinite(cos), cos, own_cosines(ds, beam, beam_range))
         s_range, s_lat = profile.sigmas(beam_range, cos, units)
         return ds.with_uncertainty(GaussianUncertainty(beam_covariances(pos, origin, s_range, s_lat)))
 
-    return {"recent": map_selected(ctx, estimate)}
+    def own_cosines(ds: Dataset, beam: np.ndarray, beam_range: np.ndarray) -> np.ndarray:
+        if ds.faces is not None:
+            normals = ds.facet_normals(unit=True)
+        else:
+            normals = estimate_normals(ds.points, ctx.params.normal_neighbours, ctx.epoch.origin)
+            if ctx.tile is not None:  # in a tile: the runner checks that every neighbourhood was whole
+                ctx.neighbourhoods(ds.points, knn_reach(ds.points, ctx.params.normal_neighbours))
+        return np.einsum("ij,ij->i", normals, beam / np.maximum(beam_range[:, None], 1e-300))
+
+    recent = map_selected(ctx, estimate)
+    if on_twin:
+        ctx.report(incidence={"on_twin_surfaces": [round(x, 4) for x in on_twin]})
+    return {"recent": recent}

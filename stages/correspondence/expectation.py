@@ -10,8 +10,11 @@ Per point P with covariance Σ:
    Σ's largest axis, or the closest point where Σ has no dominant axis. n is the facet's normal;
 2. its offset along that normal, δ = (P − H)·n, with variance nᵀΣn. Offsets are taken against the twin's own
    shape, so its bends, edges and thin parts do not bias them;
-3. its neighbours: up to ``neighbours`` points of every recent point dataset (stations pool) whose anchors lie
-   within ``radius`` of H (default: the radius of P's own 99 % region) on facets facing within 60° of n;
+3. its neighbours: up to ``neighbours`` points whose anchors lie within ``radius`` of H (default: the radius of
+   P's own 99 % region) on facets facing within 60° of n; in the first pass from P's own dataset (station) only,
+   in the second from every recent point dataset where the first pass's expectations agree within 3 σ (a new
+   part's points are anchored where their beams meet the twin behind it, often on floor another station sees
+   directly: the two must not pool);
 4. the pooled offset, in each quadrant about H apart: the mean of the nearest 2, 4, 8, … neighbours' offsets
    (equal weights: a scanner's σ grows with the measured range, and inverse-variance weights would pull the mean
    towards the sensor), leaving out those more than 3.5 σ off the median of the nearest 32 (another surface).
@@ -23,7 +26,7 @@ Per point P with covariance Σ:
    its neighbours' median lies on another surface: it keeps its own value;
 5. a second pass anchors each point on the crossing of its beam nearest to where its neighbours put the surface
    (two surfaces within the noise along one beam: one point cannot tell which it is on, its neighbours can) and
-   pools again;
+   pools again, now across stations;
 6. the expectation: the point on P's line (its beam) at the pooled offset; its covariance is the pooled variance
    along n and, across n, that of a point on the line (Σ across the line, the pooled variance over cos² along
    it), so its spread along the surface shrinks with the pooling too.
@@ -51,6 +54,11 @@ TRIM_SIGMAS = 3.5  # neighbours farther than this off the median of the nearest 
 CENTRE = 32  # a median of 8 is off by 0.44 σ, which shifts the trimming window and adds to the mean's variance
 ISOTROPIC_RATIO = 2.0  # largest / second variance below this: no dominant axis, the closest point anchors
 REGION_99 = 11.345  # χ²(3) at 0.99: the squared radius, in σ, of a point's 99 % region
+# a point of another dataset (station) pools only where the two first-pass expectations agree within this many σ:
+# a new part's points are anchored where their beams meet the twin behind it, often on floor another station sees
+# directly; pooled together, the part's offsets pulled that floor's expectations up (0.6-0.8 σ within 5 cm of
+# parts on the ToF family) and the floor's pulled the part's down
+GATE_SIGMAS = 3.0
 CHUNK = 8192  # queries pooled at a time: bounds the kd-tree's (chunk × neighbours) answer to 33 MB at 256
 
 
@@ -181,8 +189,11 @@ def _safe_cos(cos: np.ndarray) -> np.ndarray:
     return np.where(np.abs(cos) < MIN_COS, np.copysign(MIN_COS, cos), cos)
 
 
-def _pool(found: list[Anchors], params: PoolingParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per point of all datasets: the pooled offset along its normal, its variance and the neighbours pooled."""
+def _pool(found: list[Anchors], params: PoolingParams, earlier: tuple[np.ndarray, np.ndarray] | None = None
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point of all datasets: the pooled offset along its normal, its variance and the neighbours pooled. Without
+    ``earlier`` (offsets and variances of a first pass) each point pools within its own dataset; with it, points of
+    other datasets join where their earlier expectations agree within ``GATE_SIGMAS``."""
     from scipy.spatial import cKDTree
 
     cat = {name: np.concatenate([getattr(a, name) for a in found]) for name in ("anchor", "normal", "offset",
@@ -194,6 +205,9 @@ def _pool(found: list[Anchors], params: PoolingParams) -> tuple[np.ndarray, np.n
     used = np.ones(len(est), dtype=np.int64)
     if not len(rows):
         return est, est_var, used
+    source = np.concatenate([np.full(len(a.ok), k, dtype=np.int64) for k, a in enumerate(found)])
+    gating = ((source, -1.0, np.zeros(0), np.zeros(0)) if earlier is None
+              else (source, GATE_SIGMAS, earlier[0].copy(), earlier[1].copy()))
     tree = cKDTree(cat["anchor"][rows])
     for start in range(0, len(rows), CHUNK):
         chunk = np.arange(start, min(start + CHUNK, len(rows)))
@@ -201,7 +215,7 @@ def _pool(found: list[Anchors], params: PoolingParams) -> tuple[np.ndarray, np.n
                               distance_upper_bound=float(radius[chunk].max()), workers=-1)
         pool_rows(chunk, nb.reshape(len(chunk), -1), dist.reshape(len(chunk), -1), radius, rows, cat["anchor"],
                   cat["normal"], cat["offset"], cat["variance"], params.gamma, COS_CONE, CENTRE, TRIM_SIGMAS,
-                  est, est_var, used)
+                  gating, est, est_var, used)
     return est, est_var, used
 
 
@@ -224,7 +238,7 @@ def pooled_expectations(datasets: list[Dataset], stations: list[np.ndarray | Non
         cos = _safe_cos(np.einsum("ij,ij->i", a.normal, a.axis))
         targets.append(np.where(a.ok, (a.offset - est[sl]) / cos, 0.0))
     found = [surface_anchors(li, tg) for li, tg in zip(lines, targets, strict=True)]
-    est, est_var, used = _pool(found, params)
+    est, est_var, used = _pool(found, params, (est, est_var))
     sizes = np.array([ds.n_elements for ds in datasets])
     largest = max((float(a.largest.max(initial=0.0)) for a in found), default=0.0)
     slack = params.reach_sigmas * np.sqrt(largest)

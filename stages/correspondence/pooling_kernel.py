@@ -24,11 +24,23 @@ def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True)
+def _admitted(g: int, big: int, source: np.ndarray, gate: float, ref_est: np.ndarray, ref_var: np.ndarray) -> bool:
+    """Whether neighbour ``big`` may pool with point ``g``: always from its own source (dataset); from another, never
+    when ``gate`` < 0, else where their earlier expectations agree within ``gate`` σ."""
+    if source[big] == source[g]:
+        return True
+    if gate < 0:
+        return False
+    return abs(ref_est[big] - ref_est[g]) <= gate * np.sqrt(ref_var[big] + ref_var[g])
+
+
+@njit(cache=True)
 def _members(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points: int, rows: np.ndarray,
-             normal: np.ndarray, offset: np.ndarray, variance: np.ndarray, cone: float, centre_count: int
-             ) -> tuple[np.ndarray, int, float, float]:
-    """The neighbours within ``radius`` facing within the cone, nearest first (point numbering), how many, and the
-    median offset and √(median variance) of the nearest ``centre_count`` of them."""
+             normal: np.ndarray, offset: np.ndarray, variance: np.ndarray, cone: float, centre_count: int,
+             gating: tuple[np.ndarray, float, np.ndarray, np.ndarray]) -> tuple[np.ndarray, int, float, float]:
+    """The neighbours within ``radius`` facing within the cone that ``gating`` (source, gate, earlier estimates and
+    variances: see ``_admitted``) admits, nearest first (point numbering), how many, and the median offset and
+    √(median variance) of the nearest ``centre_count`` of them."""
     member = np.empty(len(nb), dtype=np.int64)
     near_off = np.empty(centre_count)
     near_var = np.empty(centre_count)
@@ -39,6 +51,8 @@ def _members(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points: 
             continue
         big = rows[j]
         if normal[big, 0] * normal[g, 0] + normal[big, 1] * normal[g, 1] + normal[big, 2] * normal[g, 2] < cone:
+            continue
+        if not _admitted(g, big, gating[0], gating[1], gating[2], gating[3]):
             continue
         if n_near < centre_count:
             near_off[n_near], near_var[n_near] = offset[big], variance[big]
@@ -51,10 +65,11 @@ def _members(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points: 
 @njit(cache=True)
 def _pool_one(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points: int, rows: np.ndarray,
               anchor: np.ndarray, normal: np.ndarray, offset: np.ndarray, variance: np.ndarray, gamma: float,
-              cone: float, centre_count: int, trim: float) -> tuple[float, float, int]:
+              cone: float, centre_count: int, trim: float, gating: tuple[np.ndarray, float, np.ndarray, np.ndarray]
+              ) -> tuple[float, float, int]:
     """One point's pooled offset, its variance and the neighbours pooled (see ``pool_rows``)."""
     member, m, centre, spread = _members(g, nb, dist, radius, n_points, rows, normal, offset, variance, cone,
-                                         centre_count)
+                                         centre_count, gating)
     precision, weighted, used = 1.0 / variance[g], offset[g] / variance[g], 1
     if abs(offset[g] - centre) > trim * spread:  # the point lies on another surface than its neighbours
         return offset[g], 1.0 / precision, used
@@ -106,12 +121,13 @@ def _pool_one(g: int, nb: np.ndarray, dist: np.ndarray, radius: float, n_points:
 @njit(cache=True, parallel=True)
 def pool_rows(chunk_rows: np.ndarray, nb: np.ndarray, dist: np.ndarray, radius: np.ndarray, rows: np.ndarray,
               anchor: np.ndarray, normal: np.ndarray, offset: np.ndarray, variance: np.ndarray, gamma: float,
-              cone: float, centre_count: int, trim: float, est: np.ndarray, est_var: np.ndarray,
-              used: np.ndarray) -> None:
+              cone: float, centre_count: int, trim: float, gating: tuple[np.ndarray, float, np.ndarray, np.ndarray],
+              est: np.ndarray, est_var: np.ndarray, used: np.ndarray) -> None:
     """For each query ``r`` (point ``rows[chunk_rows[r]]``, its kd-tree neighbours ``nb[r]`` in ``rows`` numbering
-    nearest first, ``len(rows)`` where missing, at ``dist[r]``): pooled offset, variance and neighbours pooled into
-    ``est``, ``est_var``, ``used`` (point numbering)."""
+    nearest first, ``len(rows)`` where missing, at ``dist[r]``; ``gating``: which may pool, see ``_admitted``):
+    pooled offset, variance and neighbours pooled into ``est``, ``est_var``, ``used`` (point numbering; arrays of
+    their own, not ``gating``'s, which other threads read meanwhile)."""
     for r in prange(len(chunk_rows)):
         g = rows[chunk_rows[r]]
         est[g], est_var[g], used[g] = _pool_one(g, nb[r], dist[r], radius[chunk_rows[r]], len(rows), rows, anchor,
-                                               normal, offset, variance, gamma, cone, centre_count, trim)
+                                               normal, offset, variance, gamma, cone, centre_count, trim, gating)

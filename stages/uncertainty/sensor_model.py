@@ -94,36 +94,40 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
     units = ctx.epoch.units
 
     surfaces = known_surfaces(ctx.get("reference")) if ctx.params.incidence_normals == "auto" else []
-    shift = np.zeros(3) if ctx.epoch.origin is None else np.asarray(ctx.epoch.origin, dtype=np.float64)
     on_twin: list[float] = []
 
     def estimate(ds: Dataset) -> Dataset:
         origin = station(ds, ctx.params.viewpoint)
         pos = ds.element_positions()
-        beam = pos - origin
-        beam_range = np.linalg.norm(beam, axis=1)
-        cos = None
-        if ctx.params.incidence:
-            cos = np.full(len(pos), np.nan)
-            if ds.faces is None and surfaces:
-                cos, reach = surface_cosines(surfaces, origin, pos, profile, units, shift)
-                ctx.neighbourhoods(ds.points, reach)
-                on_twin.append(float(np.mean(np.isfinite(cos))) if len(cos) else 0.0)
-            if not np.all(np.isfinite(cos)):
-                cos = np.where(np.isfinite(cos), cos, own_cosines(ds, beam, beam_range))
+        beam_range = np.linalg.norm(pos - origin, axis=1)
+        cos = incidence_cosines(ctx, ds, origin, profile, surfaces, on_twin) if ctx.params.incidence else None
         s_range, s_lat = profile.sigmas(beam_range, cos, units)
         return ds.with_uncertainty(GaussianUncertainty(beam_covariances(pos, origin, s_range, s_lat)))
-
-    def own_cosines(ds: Dataset, beam: np.ndarray, beam_range: np.ndarray) -> np.ndarray:
-        if ds.faces is not None:
-            normals = ds.facet_normals(unit=True)
-        else:
-            normals = estimate_normals(ds.points, ctx.params.normal_neighbours, ctx.epoch.origin)
-            if ctx.tile is not None:  # in a tile: the runner checks that every neighbourhood was whole
-                ctx.neighbourhoods(ds.points, knn_reach(ds.points, ctx.params.normal_neighbours))
-        return np.einsum("ij,ij->i", normals, beam / np.maximum(beam_range[:, None], 1e-300))
 
     recent = map_selected(ctx, estimate)
     if on_twin:
         ctx.report(incidence={"on_twin_surfaces": [round(x, 4) for x in on_twin]})
     return {"recent": recent}
+
+
+def incidence_cosines(ctx: StageContext, ds: Dataset, origin: np.ndarray, profile: SensorProfile,
+                      surfaces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], on_twin: list[float]) -> np.ndarray:
+    """Per element cos of the incidence: a mesh's own facets; a point cloud's from the twin's ``surfaces`` where its
+    beam crosses one within 3 σ (the share that did appended to ``on_twin``), elsewhere its PCA normals."""
+    pos = ds.element_positions()
+    beam = pos - origin
+    unit = beam / np.maximum(np.linalg.norm(beam, axis=1, keepdims=True), 1e-300)
+    if ds.faces is not None:
+        return np.einsum("ij,ij->i", ds.facet_normals(unit=True), unit)
+    cos = np.full(len(pos), np.nan)
+    if surfaces:
+        shift = np.zeros(3) if ctx.epoch.origin is None else np.asarray(ctx.epoch.origin, dtype=np.float64)
+        cos, reach = surface_cosines(surfaces, origin, pos, profile, ctx.epoch.units, shift)
+        ctx.neighbourhoods(ds.points, reach)
+        on_twin.append(float(np.mean(np.isfinite(cos))) if len(cos) else 0.0)
+    if np.all(np.isfinite(cos)):
+        return cos
+    normals = estimate_normals(ds.points, ctx.params.normal_neighbours, ctx.epoch.origin)
+    if ctx.tile is not None:  # in a tile: the runner checks that every neighbourhood was whole
+        ctx.neighbourhoods(ds.points, knn_reach(ds.points, ctx.params.normal_neighbours))
+    return np.where(np.isfinite(cos), cos, np.einsum("ij,ij->i", normals, unit))

@@ -5,9 +5,9 @@ composite."""
 from .frames import beam_frames
 from .linalg import det3, quad_inv3, sym3
 from .normals import estimate_normals, knn_reach
-from .raycasting import distance_to, raycasting_scene
+from .raycasting import distance_to, line_crossings, raycasting_scene
 from .reference import NearestResult, ReferenceIndex
 from .sampling import sample_surface
 
 __all__ = ["NearestResult", "ReferenceIndex", "beam_frames", "det3", "distance_to", "estimate_normals", "knn_reach",
-           "quad_inv3", "raycasting_scene", "sample_surface", "sym3"]
+           "line_crossings", "quad_inv3", "raycasting_scene", "sample_surface", "sym3"]

@@ -27,3 +27,24 @@ def distance_to(meshes: list, points: np.ndarray) -> np.ndarray:
         return np.full(len(points), np.inf)
     return raycasting_scene(meshes).compute_distance(
         o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy().astype(np.float64)
+
+
+def line_crossings(scene: object, normals: list[np.ndarray], points: np.ndarray, axis: np.ndarray,
+                   reach: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every crossing of each line (through ``points`` along unit ``axis``, in ``scene``'s coordinates) with the
+    meshes of the Open3D raycasting ``scene`` within ``reach`` of its point: which line, how far the point lies
+    beyond the crossing along the line, and the facet's normal (``normals``: per geometry of the scene, per
+    facet)."""
+    import open3d as o3d
+
+    start = (points - axis * reach[:, None]).astype(np.float32)
+    ans = scene.list_intersections(o3d.core.Tensor(np.hstack([start, axis.astype(np.float32)])))
+    ray = ans["ray_ids"].numpy().astype(np.int64)
+    geometry, primitive = ans["geometry_ids"].numpy().astype(np.int64), ans["primitive_ids"].numpy().astype(np.int64)
+    normal = np.zeros((len(ray), 3))
+    for g, table in enumerate(normals):
+        at = geometry == g
+        normal[at] = table[primitive[at]]
+    along = reach[ray] - ans["t_hit"].numpy().astype(np.float64)
+    near = np.abs(along) <= reach[ray]
+    return ray[near], along[near], normal[near]

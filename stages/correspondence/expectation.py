@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from gdt_pipeline import Dataset, GaussianUncertainty, StageContext
+from gdt_pipeline.geometry import line_crossings
 from gdt_pipeline.names import UNITS
 
 from .pooling_kernel import pool_rows
@@ -121,16 +122,8 @@ def cast_lines(scene: object, origin: np.ndarray, normals: list[np.ndarray], pos
         axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-300)
     else:
         axis = v[:, :, -1].copy()
-    start = (pos - axis * reach[:, None] - origin).astype(np.float32)
-    ans = scene.list_intersections(o3d.core.Tensor(np.hstack([start, axis.astype(np.float32)])))
-    ray = ans["ray_ids"].numpy().astype(np.int64)
-    geom, prim = ans["geometry_ids"].numpy().astype(np.int64), ans["primitive_ids"].numpy().astype(np.int64)
-    n = np.zeros((len(ray), 3))
-    for g, table in enumerate(normals):
-        at = geom == g
-        n[at] = table[prim[at]]
-    along = reach[ray] - ans["t_hit"].numpy().astype(np.float64)
-    ok = np.abs(along) <= reach[ray]
+    ray, along, n = line_crossings(scene, normals, pos - origin, axis, reach)
+    ok = np.ones(len(ray), dtype=bool)
     if station is not None:  # the side a sensor looking along the beam sees
         ok &= np.einsum("ij,ij->i", n, axis[ray]) < 0
     rows = np.flatnonzero(w[:, -1] < ISOTROPIC_RATIO * w[:, -2]) if station is None else np.zeros(0, np.int64)

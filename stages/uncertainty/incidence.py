@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gdt_pipeline.geometry import line_crossings
 from gdt_pipeline.sensors import SensorProfile
 
 ACCEPT_SIGMAS = 3.0  # a crossing farther along the beam than this many σ (at its own incidence) is another surface
@@ -35,17 +36,9 @@ def beam_crossings(surfaces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], or
         normals.append(n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300))
     beam = points - origin
     unit = beam / np.maximum(np.linalg.norm(beam, axis=1, keepdims=True), 1e-300)
-    start = points - unit * reach[:, None] - shift
-    ans = scene.list_intersections(o3d.core.Tensor(np.hstack([start, unit]).astype(np.float32)))
-    ray = ans["ray_ids"].numpy().astype(np.int64)
-    geometry, primitive = ans["geometry_ids"].numpy().astype(np.int64), ans["primitive_ids"].numpy().astype(np.int64)
-    n = np.zeros((len(ray), 3))
-    for g, table in enumerate(normals):
-        at = geometry == g
-        n[at] = table[primitive[at]]
-    along = reach[ray] - ans["t_hit"].numpy().astype(np.float64)
+    ray, along, n = line_crossings(scene, normals, points - shift, unit, reach)
     cos = np.einsum("ij,ij->i", n, unit[ray])
-    keep = (np.abs(along) <= reach[ray]) & (cos < 0)  # a beam sees a facet's front only
+    keep = cos < 0  # a beam sees a facet's front only
     return ray[keep], along[keep], -cos[keep]
 
 

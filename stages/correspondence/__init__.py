@@ -78,10 +78,12 @@ class DirectedParams(BaseModel):
     surface_sampling: bool = Field(True, description="Reference points also carry where the surface lies between "
                                                      "them: (half their spacing)² in their tangent plane, so a sparse "
                                                      "precise scan matches a later one sampled elsewhere.")
-    expectation: Literal["point", "neighbourhood"] = Field(
-        "point", description="What a recent point is judged by: its own position and covariance (the per-point "
-                             "test), or the expectation of the twin's surface it lies on, pooled over its "
-                             "neighbours (dense noisy clouds against meshes; docs/distances.md).")
+    expectation: Literal["auto", "point", "neighbourhood"] = Field(
+        "auto", description="What a recent point is judged by: its own position and covariance (point: the "
+                            "per-point test), or the expectation of the twin's surface it lies on, pooled over its "
+                            "neighbours (neighbourhood; docs/distances.md). auto: pooled where a point cloud with "
+                            "Gaussian covariances meets the twin's meshes and has neighbours within its 99 % "
+                            "region, per point elsewhere; neighbourhood warns where it cannot pool.")
     pooling_neighbours: PositiveInt = Field(256, ge=8, description="Nearest neighbours a point's expectation "
                                                                    "draws on (in four quadrants, each pooled at 2, "
                                                                    "4, 8, … of its own).")
@@ -108,7 +110,7 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
     if ref_mesh is not None and not ref_mesh.empty:
         extra_var = max(float(np.linalg.eigvalsh(np.asarray(reference.items[i].dataset.element_covariance())
                                                  [vis]).max()) for i, vis in ref_mesh.items)
-    expected = expectations(ctx, ref_mesh) if p.expectation == "neighbourhood" else {}
+    expected = expectations(ctx, ref_mesh) if p.expectation != "point" else {}
     out = []
     for qi, ds in enumerate(ctx["recent"]):
         if query_kind is not None and ds.kind != query_kind:
@@ -176,7 +178,7 @@ def _directed_reach(params: DirectedParams, slots: Mapping[str, Any]) -> float:
     if any(it.dataset.faces is None and it.visible.any() for it in reference.items):
         var_pts = ReferencePoints(reference, params.surface_sampling).max_var
         reach = max(reach, float(np.sqrt(chi2.ppf(params.probability, 3) * (var_q + var_pts))))
-    if params.expectation == "neighbourhood":
+    if params.expectation != "point" and meshes:
         # a pooled point's neighbours: anchors within the pooling radius, each point within the search reach of its
         # anchor, twice over (the second pass anchors by the first one's neighbours)
         slack = params.search_sigmas * np.sqrt(var_q)

@@ -273,7 +273,8 @@ def expectations(ctx: StageContext, meshes: Any) -> dict[str, Expectation]:
     if meshes is None or meshes.empty or not chosen:
         why = ("the twin holds no visible mesh to anchor expectations on" if chosen
                else "no recent point cloud with Gaussian covariances")
-        ctx.log.warning("neighbourhood expectation: %s; every point is judged by itself", why)
+        if p.expectation == "neighbourhood":  # asked for by name; auto pools where it can, quietly
+            ctx.log.warning("neighbourhood expectation: %s; every point is judged by itself", why)
         ctx.report(expectation={"pooled_share": 0.0, "why": why})
         return {}
     radius = None if p.pooling_radius is None else p.pooling_radius / UNITS[ctx.epoch.units]

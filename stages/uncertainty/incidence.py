@@ -11,40 +11,56 @@ with them too, so the fitted profile is applied the way it was fitted.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from gdt_pipeline import Composite
 from gdt_pipeline.geometry import line_crossings
 from gdt_pipeline.sensors import SensorProfile
 
 ACCEPT_SIGMAS = 3.0  # a crossing farther along the beam than this many σ (at its own incidence) is another surface
 
 
-def beam_crossings(surfaces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], origin: np.ndarray,
-                   points: np.ndarray, reach: np.ndarray, shift: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every crossing of each point's beam (from ``origin``) with a facet of ``surfaces`` facing the station within
-    ``reach`` of the point: which point, how far the point lies beyond it along the beam, |cos| of the incidence
-    (Open3D, float32 about ``shift``)."""
-    import open3d as o3d
+@dataclass(frozen=True)
+class TwinFacets:
+    """The twin's visible mesh facets in one Open3D raycasting scene (float32 about ``shift``, so that
+    georeferenced coordinates keep their precision) with each geometry's unit facet normals: built once per stage
+    call, cast against by every dataset."""
 
-    scene, normals = o3d.t.geometry.RaycastingScene(), []
-    for vertices, faces, _ in surfaces:
-        scene.add_triangles(o3d.core.Tensor((vertices - shift).astype(np.float32)),
-                            o3d.core.Tensor(faces.astype(np.uint32)))
-        edge_a, edge_b = vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]
-        n = np.cross(edge_a, edge_b)
-        normals.append(n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300))
-    beam = points - origin
-    unit = beam / np.maximum(np.linalg.norm(beam, axis=1, keepdims=True), 1e-300)
-    ray, along, n = line_crossings(scene, normals, points - shift, unit, reach)
-    cos = np.einsum("ij,ij->i", n, unit[ray])
-    keep = cos < 0  # a beam sees a facet's front only
-    return ray[keep], along[keep], -cos[keep]
+    scene: object
+    normals: list[np.ndarray]
+    shift: np.ndarray
+
+    @classmethod
+    def of(cls, reference: Composite | None, shift: np.ndarray) -> TwinFacets | None:
+        """The visible facets of ``reference``'s meshes; None when it holds none."""
+        import open3d as o3d
+
+        scene, normals = o3d.t.geometry.RaycastingScene(), []
+        for item in reference.items if reference is not None else ():
+            ds = item.dataset
+            if ds.faces is None or not np.any(item.visible):
+                continue
+            scene.add_triangles(o3d.core.Tensor((ds.points - shift).astype(np.float32)),
+                                o3d.core.Tensor(ds.faces[item.visible].astype(np.uint32)))
+            normals.append(ds.facet_normals(unit=True)[item.visible])
+        return cls(scene, normals, shift) if normals else None
+
+    def beam_crossings(self, origin: np.ndarray, points: np.ndarray, reach: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every crossing of each point's beam (from ``origin``) with a facet facing the station within ``reach``
+        of the point: which point, how far the point lies beyond it along the beam, |cos| of the incidence."""
+        beam = points - origin
+        unit = beam / np.maximum(np.linalg.norm(beam, axis=1, keepdims=True), 1e-300)
+        ray, along, n = line_crossings(self.scene, self.normals, points - self.shift, unit, reach)
+        cos = np.einsum("ij,ij->i", n, unit[ray])
+        keep = cos < 0  # a beam sees a facet's front only
+        return ray[keep], along[keep], -cos[keep]
 
 
-def surface_cosines(surfaces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], origin: np.ndarray,
-                    points: np.ndarray, profile: SensorProfile, units: str, shift: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def surface_cosines(facets: TwinFacets | None, origin: np.ndarray, points: np.ndarray, profile: SensorProfile,
+                    units: str) -> tuple[np.ndarray, np.ndarray]:
     """Per point |cos| of the incidence on the twin facet its beam crosses within ``ACCEPT_SIGMAS`` σ (σ at that
     facet's incidence) under which the point is likeliest; NaN where no facet does. Also each point's search
     reach (for a tile's halo)."""
@@ -52,9 +68,9 @@ def surface_cosines(surfaces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], o
     widest, _ = profile.sigmas(beam_range, np.zeros(len(points)), units)  # σ at the incidence floor
     reach = ACCEPT_SIGMAS * widest
     cos = np.full(len(points), np.nan)
-    if not surfaces or not len(points):
+    if facets is None or not len(points):
         return cos, reach
-    ray, along, found_cos = beam_crossings(surfaces, origin, points, reach, shift)
+    ray, along, found_cos = facets.beam_crossings(origin, points, reach)
     s_range, _ = profile.sigmas(beam_range[ray], found_cos, units)
     z = np.abs(along) / np.maximum(s_range, 1e-300)
     near = z <= ACCEPT_SIGMAS

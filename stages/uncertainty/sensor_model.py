@@ -18,7 +18,7 @@ from gdt_pipeline.sensors import PRESETS, SensorProfile, load_profile
 
 from ._select import map_selected
 from .estimators import beam_covariances
-from .incidence import surface_cosines
+from .incidence import TwinFacets, surface_cosines
 from .self_calibration import beam_hits, calibrate_profile, fit_data, joined, known_surfaces
 
 
@@ -93,14 +93,15 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
         ctx.report(self_calibration=ctx.survey["self_calibration"])
     units = ctx.epoch.units
 
-    surfaces = known_surfaces(ctx.get("reference")) if ctx.params.incidence_normals == "auto" else []
+    shift = np.zeros(3) if ctx.epoch.origin is None else np.asarray(ctx.epoch.origin, dtype=np.float64)
+    facets = TwinFacets.of(ctx.get("reference"), shift) if ctx.params.incidence_normals == "auto" else None
     on_twin: list[float] = []
 
     def estimate(ds: Dataset) -> Dataset:
         origin = station(ds, ctx.params.viewpoint)
         pos = ds.element_positions()
         beam_range = np.linalg.norm(pos - origin, axis=1)
-        cos = incidence_cosines(ctx, ds, origin, profile, surfaces, on_twin) if ctx.params.incidence else None
+        cos = incidence_cosines(ctx, ds, origin, profile, facets, on_twin) if ctx.params.incidence else None
         s_range, s_lat = profile.sigmas(beam_range, cos, units)
         return ds.with_uncertainty(GaussianUncertainty(beam_covariances(pos, origin, s_range, s_lat)))
 
@@ -111,8 +112,8 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
 
 
 def incidence_cosines(ctx: StageContext, ds: Dataset, origin: np.ndarray, profile: SensorProfile,
-                      surfaces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], on_twin: list[float]) -> np.ndarray:
-    """Per element cos of the incidence: a mesh's own facets; a point cloud's from the twin's ``surfaces`` where its
+                      facets: TwinFacets | None, on_twin: list[float]) -> np.ndarray:
+    """Per element cos of the incidence: a mesh's own facets; a point cloud's from the twin's ``facets`` where its
     beam crosses one within 3 σ (the share that did appended to ``on_twin``), elsewhere its PCA normals."""
     pos = ds.element_positions()
     beam = pos - origin
@@ -120,9 +121,8 @@ def incidence_cosines(ctx: StageContext, ds: Dataset, origin: np.ndarray, profil
     if ds.faces is not None:
         return np.einsum("ij,ij->i", ds.facet_normals(unit=True), unit)
     cos = np.full(len(pos), np.nan)
-    if surfaces:
-        shift = np.zeros(3) if ctx.epoch.origin is None else np.asarray(ctx.epoch.origin, dtype=np.float64)
-        cos, reach = surface_cosines(surfaces, origin, pos, profile, ctx.epoch.units, shift)
+    if facets is not None:
+        cos, reach = surface_cosines(facets, origin, pos, profile, ctx.epoch.units)
         ctx.neighbourhoods(ds.points, reach)
         on_twin.append(float(np.mean(np.isfinite(cos))) if len(cos) else 0.0)
     if np.all(np.isfinite(cos)):

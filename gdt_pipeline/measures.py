@@ -30,7 +30,6 @@ from .compiled import njit
 from .geometry import sample_surface
 from .plugins import StageContext, StageSpec
 from .types import Composite, Correspondences, Dataset, Scores
-from .types.uncertainty import take_rows, uncertainty_rows
 
 MeasureResult = tuple[np.ndarray, np.ndarray | None, np.ndarray]
 PairMeasure = Callable[["PairGroup", np.random.Generator], MeasureResult]
@@ -58,12 +57,8 @@ class PairGroup:
     def subset(self, sel: np.ndarray, mu_q: np.ndarray | None = None, mu_r: np.ndarray | None = None) -> PairGroup:
         """The pairs ``sel`` of this group, optionally with other means (simulated ones)."""
         return PairGroup(self.idx[sel], self.elements[sel], self.mu_q[sel] if mu_q is None else mu_q,
-                         take_rows(self.u_q, sel), self.mu_r[sel] if mu_r is None else mu_r, take_rows(self.u_r, sel),
+                         self.u_q.take(sel), self.mu_r[sel] if mu_r is None else mu_r, self.u_r.take(sel),
                          self.ref_items[sel], self.ref_elements[sel], None if self.normal is None else self.normal[sel])
-
-
-def _expand(u: Any, n: int) -> Any:
-    return u if uncertainty_rows(u) == n else u.take(np.zeros(n, dtype=np.int64))
 
 
 @dataclass(frozen=True)
@@ -91,8 +86,8 @@ class PairSource:
         elem = self.element[cand]
         if mu_q is None:
             mu_q = self.query_position[cand if self.query_per_candidate else elem]
-        return PairGroup(cand, elem, mu_q, take_rows(self.u_q, cand if self.u_q_per_candidate else elem),
-                         self.position[cand] if mu_r is None else mu_r, take_rows(self.u_r, self.ref_rows[cand]),
+        return PairGroup(cand, elem, mu_q, self.u_q.take(cand if self.u_q_per_candidate else elem),
+                         self.position[cand] if mu_r is None else mu_r, self.u_r.take(self.ref_rows[cand]),
                          self.ref_item[cand], self.ref_element[cand])
 
     def whole(self) -> PairGroup:
@@ -175,8 +170,8 @@ def null_simulator(groups: list[PairGroup] | list[PairSource], measure: PairMeas
             local = pick[owner == g_i] - (sizes[:g_i].sum() if g_i else 0)
             sub = g.subset(local)
             truth = sub.mu_r
-            sim = g.subset(local, mu_q=truth + _sample_offsets(_expand(sub.u_q, len(local)), len(local), rng),
-                           mu_r=truth + _sample_offsets(_expand(sub.u_r, len(local)), len(local), rng))
+            sim = g.subset(local, mu_q=truth + _sample_offsets(sub.u_q, len(local), rng),
+                           mu_r=truth + _sample_offsets(sub.u_r, len(local), rng))
             out.append(measure(sim, rng)[0])
         return np.concatenate(out)
 

@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom
 
+from .types.triangles import triangle_areas, triangle_points
+
 
 def _world(prim: Usd.Prim, cache: UsdGeom.XformCache, local: np.ndarray) -> np.ndarray:
     m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64)  # row-vector convention
@@ -51,14 +53,11 @@ def scene_samples(stage: Usd.Stage, *, samples_per_unit2: float, rng: np.random.
                 keep[np.asarray(holes, dtype=np.int64)] = False
             col, interp = _colors(prim, len(faces), len(world))
             tri = world[faces[keep]]
-            area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+            area = triangle_areas(tri)
             counts = np.maximum(1, np.round(area * samples_per_unit2)).astype(np.int64)
             idx = np.repeat(np.arange(len(tri)), counts)
             r1, r2 = rng.random(len(idx)), rng.random(len(idx))
-            flip = r1 + r2 > 1
-            r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
-            t = tri[idx]
-            pts_all.append(t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0]))
+            pts_all.append(triangle_points(tri, idx, r1, r2))
             face_ids = np.flatnonzero(keep)[idx]
             if interp == "uniform":
                 col_all.append(col[face_ids])

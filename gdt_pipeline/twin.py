@@ -8,14 +8,7 @@ import numpy as np
 
 from twin_store import ElementSet, TwinStore
 
-from .types import BoxUncertainty, ChangeState, Composite, GaussianUncertainty, MixtureUncertainty
-
-_TRIU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))  # xx xy xz yy yz zz
-
-
-def covariance6(cov: np.ndarray) -> np.ndarray:
-    """``(N,3,3)`` covariances packed as ``(N,6)`` in the order xx xy xz yy yz zz."""
-    return cov[:, _TRIU[0], _TRIU[1]]
+from .types import ChangeState, Composite
 
 
 def composite_to_elements(composite: Composite) -> list[ElementSet]:
@@ -25,23 +18,12 @@ def composite_to_elements(composite: Composite) -> list[ElementSet]:
         ds = it.dataset
         n = ds.n_elements
         unc = ds.uncertainty
-        cov = hw = rot = None
-        model = "none"
-        summary = np.full(n, np.nan)
-        if isinstance(unc, GaussianUncertainty):
-            model, cov = "gaussian", covariance6(unc.covariance(n))
-            summary = np.asarray(unc.summary(n))
-        elif isinstance(unc, MixtureUncertainty):
-            # The twin keeps the mixture's moments (covariance about its mean); the components stay in the run.
-            model, cov = "mixture", covariance6(unc.covariance(n))
-            summary = np.asarray(unc.summary(n))
-        elif isinstance(unc, BoxUncertainty):
-            model = "box"
-            hw = np.broadcast_to(unc.half_widths, (n, 3))
-            rot = None if unc.rotation is None else np.broadcast_to(unc.rotation, (n, 3, 3))
-            summary = np.asarray(unc.summary(n))
-        out.append(ElementSet(key=it.key, kind=ds.kind, points=ds.points, faces=ds.faces, uncertainty_model=model,
-                              covariance=cov, half_widths=hw, rotation=rot, uncertainty_summary=summary,
+        arrays: dict[str, np.ndarray | None] = {"covariance": None, "half_widths": None, "rotation": None}
+        if unc is not None:
+            arrays.update(unc.stored(n))
+        out.append(ElementSet(key=it.key, kind=ds.kind, points=ds.points, faces=ds.faces,
+                              uncertainty_model="none" if unc is None else unc.model, **arrays,
+                              uncertainty_summary=np.full(n, np.nan) if unc is None else np.asarray(unc.summary(n)),
                               state=it.state, score=it.score.astype(np.float32), source_epoch=it.source_epoch,
                               visible=it.visible,
                               p_value=None if it.p_value is None else it.p_value.astype(np.float32),

@@ -125,7 +125,7 @@ def test_point_to_point_mixtures_and_no_correspondence(registry) -> None:
     recent = Dataset("scan", "as-is", pts, uncertainty=GaussianUncertainty.isotropic(sigma))
     corr, scores, change = _chain(registry, "point_to_point", [recent], comp, calibrated=0.01)
     c = corr[0]
-    assert c.ref_uncertainty is not None and c.ref_uncertainty.family == "mixture"
+    assert c.ref_uncertainty is not None and c.ref_uncertainty.model == "mixture"
     assert c.ref_uncertainty.weights.shape[1] > 1  # several neighbours merged
     assert not np.any(np.isin(np.arange(2000, 2100), c.element))  # nothing within the 99 % ellipsoid
     assert np.all(np.isnan(scores[0].score[2000:])) and change[0].mask[2000:].all()  # so: new, not dropped

@@ -23,13 +23,13 @@ from gdt_pipeline.runner.tiled import chain_runs
 from gdt_pipeline.tiling import (
     CellIndex,
     ElementOrder,
-    concat_uncertainty,
     grid_for,
     merge_correspondences,
     size_for_budget,
     take_candidates,
     tile_members,
 )
+from gdt_pipeline.types import concat_uncertainty
 
 
 def _cloud(rng: np.random.Generator, n: int) -> np.ndarray:

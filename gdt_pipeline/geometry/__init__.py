@@ -2,6 +2,7 @@
 distance, surface sampling, normals, orthonormal frames, closed-form 3x3 algebra and the nearest-element index of a
 composite."""
 
+from ..types.triangles import triangle_areas, triangle_normals, triangle_points
 from .frames import beam_frames
 from .linalg import det3, quad_inv3, sym3
 from .normals import estimate_normals, knn_reach
@@ -10,4 +11,5 @@ from .reference import NearestResult, ReferenceIndex
 from .sampling import sample_surface
 
 __all__ = ["NearestResult", "ReferenceIndex", "beam_frames", "det3", "distance_to", "estimate_normals", "knn_reach",
-           "line_crossings", "quad_inv3", "raycasting_scene", "sample_surface", "sym3"]
+           "line_crossings", "quad_inv3", "raycasting_scene", "sample_surface", "sym3", "triangle_areas",
+           "triangle_normals", "triangle_points"]

@@ -90,9 +90,7 @@ def expected_samples(ds: Dataset, spacing: float, elements: np.ndarray | None = 
     """About how many points ``sample_surface`` returns for ``ds`` at ``spacing`` (its points, or area/spacing²)."""
     if ds.faces is None:
         return float(ds.n_elements if elements is None else len(elements))
-    faces = ds.faces if elements is None else ds.faces[elements]
-    tri = ds.points[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = ds.facet_areas(elements)
     return float(area.sum() / spacing**2 + np.count_nonzero(area > 0))
 
 

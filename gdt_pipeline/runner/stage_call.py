@@ -17,21 +17,13 @@ from ..errors import GdtError, StageError
 from ..plugins import StageContext, StageSpec
 from ..slots import valid
 from ..types import Correspondences
-from ..types.uncertainty import take_rows
 
 
 def element_ordered(corr: Correspondences) -> Correspondences:
     """The same candidates sorted by query element (stable); returned as is when already in that order."""
     if len(corr.element) < 2 or np.all(corr.element[1:] >= corr.element[:-1]):
         return corr
-    order = np.argsort(corr.element, kind="stable")
-    return Correspondences(corr.query, corr.ref_item[order], corr.ref_element[order], corr.position[order],
-                           corr.distance[order], corr.method, element=corr.element[order],
-                           query_position=None if corr.query_position is None else corr.query_position[order],
-                           ref_uncertainty=corr.ref_uncertainty, n_elements=corr.n_elements,
-                           ref_row=None if corr.ref_row is None else corr.ref_row[order],
-                           query_uncertainty=None if corr.query_uncertainty is None
-                           else take_rows(corr.query_uncertainty, order))
+    return corr.take(np.argsort(corr.element, kind="stable"))
 
 
 @contextlib.contextmanager

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import distance_to, raycasting_scene
+from ..geometry import distance_to, raycasting_scene, triangle_areas, triangle_points
 from .paper_scene import TOLERANCE
 from .scanner import ScannerSpec
 
@@ -30,11 +30,7 @@ def area_samples(mesh, rng: np.random.Generator, spacing: float = SAMPLE_SPACING
     count = np.clip(np.ceil(area / spacing**2), 1, cap).astype(np.int64)
     facet = np.repeat(np.arange(len(tri)), count)
     u, v = rng.random((2, len(facet)))
-    flip = u + v > 1  # fold the unit square onto the triangle: uniform over its area
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    t = tri[facet]
-    pts = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
-    return pts, facet
+    return triangle_points(tri, facet, u, v), facet
 
 
 def in_frustum(points: np.ndarray, eye: np.ndarray, target: np.ndarray, spec: ScannerSpec) -> np.ndarray:
@@ -139,7 +135,7 @@ def mesh_facet_truth(path: Path, asis: list, cad: list) -> dict[str, np.ndarray]
     mesh = o3d.io.read_triangle_mesh(str(path))
     v, f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.triangles)
     tri = v[f]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = triangle_areas(tri)
     samples = np.einsum("sk,fkj->fsj", SCAN_FACET_SAMPLES, tri).reshape(-1, 3)
     ans = raycasting_scene(asis).compute_closest_points(o3d.core.Tensor(samples.astype(np.float32)))
     closest = ans["points"].numpy().astype(np.float64)

@@ -12,88 +12,14 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ..types import (
-    BoxUncertainty,
-    Change,
-    Composite,
-    CompositeItem,
-    Correspondences,
-    Dataset,
-    GaussianUncertainty,
-    MixtureUncertainty,
-    RegionOfView,
-    Scores,
-    Uncertainty,
-)
-from ..types.uncertainty import take_rows, uncertainty_rows
+from ..types import Change, Composite, CompositeItem, Correspondences, Dataset, RegionOfView, Scores
 
 IndexMap = Callable[[np.ndarray], np.ndarray]
 
 
-def take_uncertainty(u: Uncertainty | None, rows: np.ndarray) -> Uncertainty | None:
-    """The rows ``rows`` of a model, if there is one (a shared one-row model stays as it is)."""
-    return None if u is None else take_rows(u, rows)
-
-
-def _expanded(u: Uncertainty, n: int) -> Uncertainty:
-    """A shared one-row model repeated for ``n`` elements (``take`` keeps a shared model shared)."""
-    if uncertainty_rows(u) == n:
-        return u
-    if isinstance(u, GaussianUncertainty):
-        return GaussianUncertainty(np.repeat(u.cov, n, axis=0))
-    if isinstance(u, BoxUncertainty):
-        return BoxUncertainty(np.repeat(u.half_widths, n, axis=0),
-                              None if u.rotation is None else np.repeat(u.rotation, n, axis=0))
-    return MixtureUncertainty(np.repeat(u.weights, n, axis=0), np.repeat(u.means, n, axis=0),
-                              np.repeat(u.covs, n, axis=0))
-
-
-def _pad_mixture(u: MixtureUncertainty, k: int) -> MixtureUncertainty:
-    """The same mixtures with ``k`` components, the extra ones weightless (the placeholders point_to_point uses)."""
-    n, have = u.weights.shape
-    if have == k:
-        return u
-    weights = np.zeros((n, k))
-    weights[:, :have] = u.weights
-    means = np.zeros((n, k, 3))
-    means[:, :have] = u.means
-    covs = np.broadcast_to(np.eye(3), (n, k, 3, 3)).copy()
-    covs[:, :have] = u.covs
-    return MixtureUncertainty(weights, means, covs)
-
-
-def _same(a: Uncertainty, b: Uncertainty) -> bool:
-    """Whether two models are the same (their array fields equal)."""
-    return type(a) is type(b) and all(
-        (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
-        for x, y in ((getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a) if f.init))
-
-
-def concat_uncertainty(parts: Sequence[Uncertainty], counts: Sequence[int]) -> Uncertainty:
-    """One model over the elements of ``parts`` one after the other (``counts[i]`` elements in part i); equal shared
-    one-row models stay shared."""
-    first = parts[0]
-    if any(type(p) is not type(first) for p in parts):
-        raise ValueError(f"tiles returned different uncertainty families: {sorted({type(p).__name__ for p in parts})}")
-    if all(uncertainty_rows(p) == 1 for p in parts) and all(_same(p, first) for p in parts[1:]):
-        return first
-    full = [_expanded(p, n) for p, n in zip(parts, counts, strict=True) if n]
-    if isinstance(first, GaussianUncertainty):
-        return GaussianUncertainty(np.concatenate([p.cov for p in full]))
-    if isinstance(first, BoxUncertainty):
-        rotated = any(p.rotation is not None for p in full)
-        rot = np.concatenate([np.broadcast_to(np.eye(3) if p.rotation is None else p.rotation,
-                                              (uncertainty_rows(p), 3, 3)) for p in full]) if rotated else None
-        return BoxUncertainty(np.concatenate([p.half_widths for p in full]), rot)
-    k = max(p.weights.shape[1] for p in full)
-    full = [_pad_mixture(p, k) for p in full]
-    return MixtureUncertainty(np.concatenate([p.weights for p in full]), np.concatenate([p.means for p in full]),
-                              np.concatenate([p.covs for p in full]))
-
-
 def take_dataset(ds: Dataset, elements: np.ndarray) -> Dataset:
     """The elements ``elements`` (sorted) of a dataset: its points, or its facets on the vertices they use."""
-    unc = take_uncertainty(ds.uncertainty, elements)
+    unc = None if ds.uncertainty is None else ds.uncertainty.take(elements)
     if ds.faces is None:
         return dataclasses.replace(ds, points=ds.points[elements], uncertainty=unc, fields=ds.take_fields(elements))
     faces = ds.faces[elements]
@@ -163,26 +89,23 @@ def lookup(sorted_ids: np.ndarray) -> IndexMap:
 
 def take_candidates(corr: Correspondences, keep: np.ndarray, element_of: IndexMap,
                     ref_element_of: Sequence[IndexMap], n_elements: int) -> Correspondences:
-    """The candidates ``keep`` (a mask) with their query and reference elements renumbered by the maps."""
-    sel = np.flatnonzero(keep)
-    item = corr.ref_item[sel]
-    ref_element = corr.ref_element[sel].copy()
+    """The candidates ``keep`` (a mask) with their query and reference elements renumbered by the maps, and only
+    the reference rows they use."""
+    sub = corr.take(np.flatnonzero(keep))
+    item = sub.ref_item
+    ref_element = sub.ref_element.copy()
     for i in np.unique(item[item >= 0]):
         at = item == i
         ref_element[at] = ref_element_of[i](ref_element[at])
-    ref_unc, ref_row = None, None
-    if corr.ref_uncertainty is not None:
-        rows = corr.ref_row[sel]
-        used = np.flatnonzero(rows >= 0)
-        ref_unc = corr.ref_uncertainty.take(rows[used])
-        ref_row = np.full(len(sel), -1, dtype=np.int64)
+    rows: dict[str, object] = {}
+    if sub.ref_uncertainty is not None:
+        assert sub.ref_row is not None
+        used = np.flatnonzero(sub.ref_row >= 0)
+        ref_row = np.full(len(item), -1, dtype=np.int64)
         ref_row[used] = np.arange(len(used))
-    return Correspondences(corr.query, item, ref_element, corr.position[sel], corr.distance[sel], corr.method,
-                           element=element_of(corr.element[sel]),
-                           query_position=None if corr.query_position is None else corr.query_position[sel],
-                           ref_uncertainty=ref_unc, n_elements=n_elements, ref_row=ref_row,
-                           query_uncertainty=None if corr.query_uncertainty is None
-                           else take_rows(corr.query_uncertainty, sel))
+        rows = {"ref_uncertainty": sub.ref_uncertainty.take(sub.ref_row[used]), "ref_row": ref_row}
+    return dataclasses.replace(sub, element=element_of(sub.element), ref_element=ref_element, n_elements=n_elements,
+                               **rows)
 
 
 def take_scores(s: Scores, elements: np.ndarray, match_of: IndexMap | None = None) -> Scores:

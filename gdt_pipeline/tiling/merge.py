@@ -15,9 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import GdtError
-from ..types import Change, Correspondences, Dataset, MixtureUncertainty, Scores
-from ..types.uncertainty import uncertainty_rows
-from .crop import concat_uncertainty
+from ..types import Change, Correspondences, Dataset, Scores, concat_uncertainty
 
 
 @dataclass(frozen=True)
@@ -45,57 +43,21 @@ def merge_recent(ds: Dataset, pieces: Sequence[Dataset], order: ElementOrder) ->
     if any(p.uncertainty is None for p in pieces) or not pieces:
         return ds
     unc = concat_uncertainty([p.uncertainty for p in pieces], [p.n_elements for p in pieces])
-    if uncertainty_rows(unc) != 1:
+    if unc.rows != 1:
         unc = unc.take(order.position)
     return dataclasses.replace(ds, uncertainty=unc)
-
-
-def _concat_mixtures(pieces: Sequence[Correspondences]) -> tuple[MixtureUncertainty | None, np.ndarray | None]:
-    with_rows = [p for p in pieces if p.ref_uncertainty is not None]
-    if not with_rows:
-        return None, None
-    rows, offset = [], 0
-    for p in pieces:
-        if p.ref_uncertainty is None:
-            rows.append(np.full(len(p.ref_item), -1, dtype=np.int64))
-            continue
-        rows.append(np.where(p.ref_row >= 0, p.ref_row + offset, -1))
-        offset += p.ref_uncertainty.weights.shape[0]
-    unc = concat_uncertainty([p.ref_uncertainty for p in with_rows], [p.ref_uncertainty.weights.shape[0]
-                                                                      for p in with_rows])
-    return unc, np.concatenate(rows)
 
 
 def merge_correspondences(pieces: Sequence[Correspondences], n_elements: int, query: int
                           ) -> tuple[Correspondences, list[np.ndarray]]:
     """The tiles' core candidates in element order, and per tile where each of its candidates went."""
     sizes = [len(p.ref_item) for p in pieces]
-    element = np.concatenate([p.element for p in pieces]) if pieces else np.zeros(0, np.int64)
-    order = np.argsort(element, kind="stable")
+    joined = Correspondences.concat(pieces, query, n_elements)
+    order = np.argsort(joined.element, kind="stable")
     where = np.empty(len(order), dtype=np.int64)
     where[order] = np.arange(len(order))
     offsets = np.r_[0, np.cumsum(sizes)]
-    ref_unc, ref_row = _concat_mixtures(pieces)
-    has_qpos = any(p.query_position is not None for p in pieces)
-    if has_qpos and not all(p.query_position is not None for p in pieces):
-        raise GdtError("tiles disagree on whether candidates carry query positions")
-
-    def cat(name: str, shape: tuple[int, ...] = ()) -> np.ndarray:
-        parts = [getattr(p, name) for p in pieces]
-        return np.concatenate(parts)[order] if parts else np.zeros((0, *shape))
-
-    has_qunc = any(p.query_uncertainty is not None for p in pieces)
-    if has_qunc and not all(p.query_uncertainty is not None for p in pieces):
-        raise GdtError("tiles disagree on whether candidates carry a query uncertainty")
-    q_unc = None
-    if has_qunc:
-        q_unc = concat_uncertainty([p.query_uncertainty for p in pieces], sizes).take(order)
-    method = pieces[0].method if pieces else ""
-    merged = Correspondences(query, cat("ref_item"), cat("ref_element"), cat("position", (3,)), cat("distance"),
-                             method, element=element[order], query_position=cat("query_position", (3,))
-                             if has_qpos else None, ref_uncertainty=ref_unc, n_elements=n_elements,
-                             ref_row=None if ref_row is None else ref_row[order], query_uncertainty=q_unc)
-    return merged, [where[offsets[i]:offsets[i + 1]] for i in range(len(pieces))]
+    return joined.take(order), [where[offsets[i]:offsets[i + 1]] for i in range(len(pieces))]
 
 
 def merge_scores(pieces: Sequence[Scores], order: ElementOrder, candidate_maps: list[np.ndarray] | None) -> Scores:

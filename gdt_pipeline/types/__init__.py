@@ -10,18 +10,12 @@ is treated as infinitely many points that share the facet's uncertainty (paper S
 
 from .arrays import broadcast_rows, frozen_array
 from .composite import Composite, CompositeItem, EpochInfo, Segment
-from .data import Change, Correspondences, Dataset, RegionOfView, Registration, Scores, SourceInfo
+from .correspondences import Correspondences
+from .data import Change, Dataset, RegionOfView, Registration, Scores, SourceInfo
 from .pose import POSE_SOURCES, SensorPose
+from .region99 import BOX_99, CHI2_3_99, Region99
 from .states import ChangeState, FusionReason, Kind, Role
-from .uncertainty import (
-    BOX_99,
-    CHI2_3_99,
-    BoxUncertainty,
-    GaussianUncertainty,
-    MixtureUncertainty,
-    Region99,
-    Uncertainty,
-)
+from .uncertainty import BoxUncertainty, GaussianUncertainty, MixtureUncertainty, Uncertainty, concat_uncertainty
 
 __all__ = [
     "BOX_99",
@@ -49,5 +43,6 @@ __all__ = [
     "SourceInfo",
     "Uncertainty",
     "broadcast_rows",
+    "concat_uncertainty",
     "frozen_array",
 ]

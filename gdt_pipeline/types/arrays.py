@@ -22,3 +22,12 @@ def broadcast_rows(arr: np.ndarray, n: int, what: str) -> None:
     """Check that a per-element array has one row, to broadcast, or one row per element."""
     if arr.shape[0] not in (1, n):
         raise ValueError(f"{what}: {arr.shape[0]} rows for {n} elements (give 1 to broadcast, or one per element)")
+
+
+# The twin's order of a symmetric 3x3 matrix's six distinct entries: xx xy xz yy yz zz (``gdt:covariance``).
+_UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+
+
+def covariance6(cov: np.ndarray) -> np.ndarray:
+    """``(N,3,3)`` symmetric matrices packed as ``(N,6)`` in the twin's order xx xy xz yy yz zz."""
+    return cov[:, _UPPER[0], _UPPER[1]]

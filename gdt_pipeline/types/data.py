@@ -11,7 +11,8 @@ import numpy as np
 from .arrays import frozen_array
 from .pose import SensorPose
 from .states import Kind, Role
-from .uncertainty import BoxUncertainty, GaussianUncertainty, MixtureUncertainty, Uncertainty, uncertainty_rows
+from .triangles import triangle_normals
+from .uncertainty import Uncertainty
 
 
 @dataclass(frozen=True)
@@ -89,11 +90,14 @@ class Dataset:
         of unit length with ``unit``."""
         if self.faces is None:
             raise ValueError(f"dataset {self.name!r} is a point set: it has no facets")
-        tri = self.points[self.faces if idx is None else self.faces[idx]]
-        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        normal = triangle_normals(self.points[self.faces if idx is None else self.faces[idx]])
         if unit:
             normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
         return normal
+
+    def facet_areas(self, idx: np.ndarray | None = None) -> np.ndarray:
+        """Areas of the facets (all, or those at ``idx``)."""
+        return 0.5 * np.linalg.norm(self.facet_normals(idx), axis=1)
 
     def element_covariance(self) -> np.ndarray:
         """Per-element covariance ``(E,3,3)`` of the attached uncertainty (second moments of a box)."""
@@ -110,14 +114,7 @@ class Dataset:
         """A copy moved by a 4x4 rigid transform; covariances and box axes are rotated with it."""
         t = np.asarray(transform, dtype=np.float64)
         rot, trans = t[:3, :3], t[:3, 3]
-        unc = self.uncertainty
-        if isinstance(unc, GaussianUncertainty):
-            unc = GaussianUncertainty(rot[None] @ unc.cov @ rot.T[None])
-        elif isinstance(unc, BoxUncertainty):
-            base = np.eye(3)[None] if unc.rotation is None else unc.rotation
-            unc = BoxUncertainty(unc.half_widths, rot[None] @ base)
-        elif isinstance(unc, MixtureUncertainty):
-            unc = MixtureUncertainty(unc.weights, unc.means @ rot.T, rot @ unc.covs @ rot.T)
+        unc = None if self.uncertainty is None else self.uncertainty.rotated(rot)
         vps = None if self.viewpoints is None else self.viewpoints @ rot.T + trans
         pose = None if self.pose is None else self.pose.transformed(rot, trans)
         return dataclasses.replace(self, points=self.points @ rot.T + trans, uncertainty=unc, viewpoints=vps,
@@ -184,72 +181,6 @@ class RegionOfView:
             inside |= scene.compute_occupancy(pts).numpy().astype(bool)
             start += n
         return inside
-
-
-@dataclass(frozen=True)
-class Correspondences:
-    """Candidate matches of the elements of one recent dataset in the reference.
-
-    Each of the M candidates belongs to query element ``element[m]`` (default: candidate m is element m), compares
-    the query at ``query_position[m]`` (default: the element's position; facet samples use their own) with the
-    reference at ``position[m]`` whose uncertainty is that of reference element ``ref_element[m]`` of item
-    ``ref_item[m]``, or row ``ref_row[m]`` of ``ref_uncertainty`` where that is ≥ 0 (a mixture of neighbours;
-    default: row m for every candidate when ``ref_uncertainty`` is given). ``query_uncertainty``, when given, holds
-    the query's uncertainty per candidate (a neighbourhood expectation's, which differs from the element's own);
-    it comes with ``query_position``. ``ref_item`` −1: no
-    correspondence inside the search space. Distance stages score every candidate and keep, per element, the
-    lowest score (the paper: "the candidate with the lower change score wins").
-    """
-
-    query: int
-    ref_item: np.ndarray
-    ref_element: np.ndarray
-    position: np.ndarray
-    distance: np.ndarray
-    method: str = ""
-    element: np.ndarray | None = None
-    query_position: np.ndarray | None = None
-    ref_uncertainty: Uncertainty | None = None
-    n_elements: int | None = None
-    ref_row: np.ndarray | None = None
-    query_uncertainty: Uncertainty | None = None
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "ref_item", frozen_array(self.ref_item, np.int64, (None,), "ref_item"))
-        m = len(self.ref_item)
-        if self.ref_uncertainty is not None:
-            rows = np.arange(m) if self.ref_row is None else self.ref_row
-            object.__setattr__(self, "ref_row", frozen_array(rows, np.int64, (m,), "ref_row"))
-        object.__setattr__(self, "ref_element", frozen_array(self.ref_element, np.int64, (m,), "ref_element"))
-        object.__setattr__(self, "position", frozen_array(self.position, np.float64, (m, 3), "matched position"))
-        object.__setattr__(self, "distance", frozen_array(self.distance, np.float64, (m,), "distance"))
-        if self.element is None:
-            object.__setattr__(self, "element", np.arange(m, dtype=np.int64))
-            object.__setattr__(self, "n_elements", m if self.n_elements is None else self.n_elements)
-        else:
-            object.__setattr__(self, "element", frozen_array(self.element, np.int64, (m,), "candidate element"))
-            if self.n_elements is None:
-                raise ValueError("correspondences with an element map need n_elements")
-        if self.query_position is not None:
-            object.__setattr__(self, "query_position",
-                               frozen_array(self.query_position, np.float64, (m, 3), "query position"))
-        if self.query_uncertainty is not None:
-            if self.query_position is None:
-                raise ValueError("correspondences with a query uncertainty per candidate need query positions")
-            rows = uncertainty_rows(self.query_uncertainty)
-            if rows not in (1, m):
-                raise ValueError(f"query uncertainty: {rows} rows for {m} candidates (give 1, or one per candidate)")
-
-    @property
-    def found(self) -> np.ndarray:
-        """Mask of the candidates that are a correspondence."""
-        return self.ref_item >= 0
-
-    def element_found(self) -> np.ndarray:
-        """Mask of the query elements with at least one correspondence."""
-        out = np.zeros(self.n_elements, dtype=bool)
-        out[self.element[self.found]] = True
-        return out
 
 
 @dataclass(frozen=True)

@@ -1,52 +1,18 @@
 """Positional uncertainty per element: Gaussian (full covariance), uniform box (GUM error limits) and
-mixtures, each with its 99 % region, sampling and density."""
+mixtures. Each model owns its operations: its 99 % region, sampling and density, the rows it holds and a subset
+of them, repetition and concatenation (tiles), a rigid rotation, the Gaussian of equal covariance, and the arrays
+the twin stores of it. ``model`` names the distribution as the twin stores it (``gdt:uncertaintyModel``)."""
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
-from .arrays import broadcast_rows, frozen_array
-
-CHI2_3_99 = 11.344866730144373  # chi-square quantile, 3 degrees of freedom, p = 0.99 (scipy.stats.chi2.ppf)
-BOX_99 = 0.99 ** (1.0 / 3.0)  # a centred box scaled by this holds 99 % of a uniform box's mass
-
-
-@dataclass(frozen=True)
-class Region99:
-    """The 99 % probability region of each element's distribution, as offsets from the element's position.
-
-    ``kind`` is "ellipsoid" (``half_axes`` are the radii along the columns of ``axes``), "box" (``half_axes`` are
-    half-widths along ``axes``) or "sphere" (``half_axes[:, 0]`` is the radius; a conservative region holding at
-    least 99 %, used for mixtures).
-    """
-
-    kind: Literal["ellipsoid", "box", "sphere"]
-    center: np.ndarray
-    half_axes: np.ndarray
-    axes: np.ndarray
-
-    def contains(self, offsets: np.ndarray) -> np.ndarray:
-        """Whether each ``(n,3)`` offset (point minus element position) lies in its element's region."""
-        d = np.asarray(offsets, dtype=np.float64) - self.center
-        if self.kind == "sphere":
-            return np.linalg.norm(d, axis=-1) <= self.half_axes[..., 0]
-        local = np.einsum("nji,nj->ni", self.axes, d)
-        scaled = np.divide(local, self.half_axes, out=np.full_like(local, np.inf), where=self.half_axes > 0)
-        scaled[(self.half_axes == 0) & (np.abs(local) < 1e-15)] = 0.0
-        if self.kind == "box":
-            return np.all(np.abs(scaled) <= 1.0, axis=-1)
-        return np.einsum("ni,ni->n", scaled, scaled) <= 1.0
-
-    def bounding_radius(self) -> np.ndarray:
-        """Radius of a sphere around the element position that holds the whole region (for KD-tree searches)."""
-        c = np.linalg.norm(self.center, axis=-1)
-        if self.kind == "sphere":
-            return c + self.half_axes[..., 0]
-        if self.kind == "box":
-            return c + np.linalg.norm(self.half_axes, axis=-1)
-        return c + self.half_axes.max(axis=-1)
+from .arrays import broadcast_rows, covariance6, frozen_array
+from .region99 import BOX_99, CHI2_3_99, Region99
 
 
 def _psd_factor(cov: np.ndarray) -> np.ndarray:
@@ -76,7 +42,7 @@ class GaussianUncertainty:
     """Multivariate normal positional uncertainty per element: full 3x3 covariances ``(N,3,3)`` or one ``(1,3,3)``."""
 
     cov: np.ndarray
-    family: Literal["gaussian"] = field(default="gaussian", init=False)
+    model: Literal["gaussian"] = field(default="gaussian", init=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "cov", frozen_array(self.cov, np.float64, (None, 3, 3), "gaussian covariance"))
@@ -90,6 +56,11 @@ class GaussianUncertainty:
         """Isotropic covariance sigma² I, for one sigma or one per element."""
         s = np.atleast_1d(np.asarray(sigma, dtype=np.float64))
         return cls(cov=(s**2)[:, None, None] * np.eye(3)[None])
+
+    @property
+    def rows(self) -> int:
+        """Rows the model holds (1: one covariance shared by every element)."""
+        return int(self.cov.shape[0])
 
     def covariance(self, n: int) -> np.ndarray:
         """Covariances broadcast to ``(n,3,3)`` (a view when a single one is shared)."""
@@ -111,6 +82,27 @@ class GaussianUncertainty:
         cov.setflags(write=False)
         object.__setattr__(out, "cov", cov)
         return out
+
+    def repeated(self, n: int) -> GaussianUncertainty:
+        """The model with one row per element of ``n`` (a shared one repeated)."""
+        return self if self.rows == n else GaussianUncertainty(np.repeat(self.cov, n, axis=0))
+
+    @staticmethod
+    def stacked(parts: Sequence[GaussianUncertainty]) -> GaussianUncertainty:
+        """The rows of ``parts`` one after the other."""
+        return GaussianUncertainty(np.concatenate([p.cov for p in parts]))
+
+    def rotated(self, rot: np.ndarray) -> GaussianUncertainty:
+        """The model turned by the rotation ``rot`` (3,3): R Σ Rᵀ."""
+        return GaussianUncertainty(rot[None] @ self.cov @ rot.T[None])
+
+    def moment_matched(self, n: int) -> GaussianUncertainty:
+        """The Gaussian of equal covariance: the model itself."""
+        return self
+
+    def stored(self, n: int) -> dict[str, np.ndarray]:
+        """What the twin stores of the model for ``n`` elements: the packed covariances."""
+        return {"covariance": covariance6(self.covariance(n))}
 
     def sample(self, n: int, rng: np.random.Generator, k: int = 1) -> np.ndarray:
         """``k`` random offsets per element, ``(n,k,3)``."""
@@ -142,7 +134,7 @@ class BoxUncertainty:
 
     half_widths: np.ndarray
     rotation: np.ndarray | None = None
-    family: Literal["box"] = field(default="box", init=False)
+    model: Literal["box"] = field(default="box", init=False)
 
     def __post_init__(self) -> None:
         hw = frozen_array(self.half_widths, np.float64, (None, 3), "box half-widths")
@@ -155,6 +147,11 @@ class BoxUncertainty:
             if not np.allclose(eye, np.eye(3), atol=1e-6):
                 raise ValueError("box rotation is not orthonormal")
             object.__setattr__(self, "rotation", rot)
+
+    @property
+    def rows(self) -> int:
+        """Rows the model holds (1: one box shared by every element)."""
+        return int(max(self.half_widths.shape[0], 0 if self.rotation is None else self.rotation.shape[0]))
 
     def covariance(self, n: int) -> np.ndarray:
         """Covariance of the uniform box, R diag(h²/3) Rᵀ, broadcast to ``(n,3,3)``."""
@@ -176,6 +173,35 @@ class BoxUncertainty:
         hw = self.half_widths if self.half_widths.shape[0] == 1 else self.half_widths[idx]
         rot = None if self.rotation is None else (self.rotation if self.rotation.shape[0] == 1 else self.rotation[idx])
         return BoxUncertainty(hw, rot)
+
+    def repeated(self, n: int) -> BoxUncertainty:
+        """The model with one row per element of ``n`` (a shared one repeated)."""
+        if self.rows == n:
+            return self
+        return BoxUncertainty(np.repeat(self.half_widths, n, axis=0),
+                              None if self.rotation is None else np.repeat(self.rotation, n, axis=0))
+
+    @staticmethod
+    def stacked(parts: Sequence[BoxUncertainty]) -> BoxUncertainty:
+        """The rows of ``parts`` one after the other (axis-aligned ones given the world axes when any is turned)."""
+        rotated = any(p.rotation is not None for p in parts)
+        rot = np.concatenate([np.broadcast_to(np.eye(3) if p.rotation is None else p.rotation, (p.rows, 3, 3))
+                              for p in parts]) if rotated else None
+        return BoxUncertainty(np.concatenate([p.half_widths for p in parts]), rot)
+
+    def rotated(self, rot: np.ndarray) -> BoxUncertainty:
+        """The model turned by the rotation ``rot`` (3,3): its axes R·A."""
+        base = np.eye(3)[None] if self.rotation is None else self.rotation
+        return BoxUncertainty(self.half_widths, rot[None] @ base)
+
+    def moment_matched(self, n: int) -> GaussianUncertainty:
+        """The Gaussian of equal covariance, per element."""
+        return GaussianUncertainty(self.covariance(n))
+
+    def stored(self, n: int) -> dict[str, np.ndarray | None]:
+        """What the twin stores of the model for ``n`` elements: half-widths and box axes (None: the world's)."""
+        return {"half_widths": np.broadcast_to(self.half_widths, (n, 3)),
+                "rotation": None if self.rotation is None else np.broadcast_to(self.rotation, (n, 3, 3))}
 
     def axes(self, n: int) -> np.ndarray:
         """Box axes (columns) per element, ``(n,3,3)``."""
@@ -220,7 +246,7 @@ class MixtureUncertainty:
     weights: np.ndarray
     means: np.ndarray
     covs: np.ndarray
-    family: Literal["mixture"] = field(default="mixture", init=False)
+    model: Literal["mixture"] = field(default="mixture", init=False)
 
     def __post_init__(self) -> None:
         w = frozen_array(self.weights, np.float64, (None, None), "mixture weights")
@@ -230,6 +256,11 @@ class MixtureUncertainty:
         object.__setattr__(self, "covs", frozen_array(self.covs, np.float64, (n, k, 3, 3), "mixture covariances"))
         if np.any(w < 0) or not np.allclose(w.sum(axis=1), 1.0, atol=1e-9):
             raise ValueError("mixture weights must be >= 0 and sum to 1 per element")
+
+    @property
+    def rows(self) -> int:
+        """Rows the model holds (1: one mixture shared by every element)."""
+        return int(self.weights.shape[0])
 
     def mean_offset(self, n: int) -> np.ndarray:
         """Mean of each mixture relative to the element position, ``(n,3)``."""
@@ -253,7 +284,50 @@ class MixtureUncertainty:
             return self
         return MixtureUncertainty(self.weights[idx], self.means[idx], self.covs[idx])
 
-    def _rows(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def repeated(self, n: int) -> MixtureUncertainty:
+        """The model with one row per element of ``n`` (a shared one repeated)."""
+        if self.rows == n:
+            return self
+        return MixtureUncertainty(np.repeat(self.weights, n, axis=0), np.repeat(self.means, n, axis=0),
+                                  np.repeat(self.covs, n, axis=0))
+
+    def padded(self, k: int) -> MixtureUncertainty:
+        """The same mixtures with ``k`` components, the extra ones weightless (the placeholders point_to_point
+        uses)."""
+        n, have = self.weights.shape
+        if have == k:
+            return self
+        weights = np.zeros((n, k))
+        weights[:, :have] = self.weights
+        means = np.zeros((n, k, 3))
+        means[:, :have] = self.means
+        covs = np.broadcast_to(np.eye(3), (n, k, 3, 3)).copy()
+        covs[:, :have] = self.covs
+        return MixtureUncertainty(weights, means, covs)
+
+    @staticmethod
+    def stacked(parts: Sequence[MixtureUncertainty]) -> MixtureUncertainty:
+        """The rows of ``parts`` one after the other, padded to the most components any has."""
+        k = max(p.weights.shape[1] for p in parts)
+        full = [p.padded(k) for p in parts]
+        return MixtureUncertainty(np.concatenate([p.weights for p in full]), np.concatenate([p.means for p in full]),
+                                  np.concatenate([p.covs for p in full]))
+
+    def rotated(self, rot: np.ndarray) -> MixtureUncertainty:
+        """The model turned by the rotation ``rot`` (3,3): component offsets R·μ and covariances R C Rᵀ."""
+        return MixtureUncertainty(self.weights, self.means @ rot.T, rot @ self.covs @ rot.T)
+
+    def moment_matched(self, n: int) -> GaussianUncertainty:
+        """The Gaussian of equal covariance (about the mixture's mean), per element."""
+        return GaussianUncertainty(self.covariance(n))
+
+    def stored(self, n: int) -> dict[str, np.ndarray]:
+        """What the twin stores of the model for ``n`` elements: its moments (covariance about its mean); the
+        components stay in the run."""
+        return {"covariance": covariance6(self.covariance(n))}
+
+    def components(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Weights ``(n,K)``, means ``(n,K,3)`` and covariances ``(n,K,3,3)`` broadcast to ``n`` elements."""
         broadcast_rows(self.weights, n, "mixture weights")
         k = self.weights.shape[1]
         return (np.broadcast_to(self.weights, (n, k)), np.broadcast_to(self.means, (n, k, 3)),
@@ -261,7 +335,7 @@ class MixtureUncertainty:
 
     def sample(self, n: int, rng: np.random.Generator, k: int = 1) -> np.ndarray:
         """``k`` random offsets per element, ``(n,k,3)``: a component by weight, then a Gaussian draw from it."""
-        w, mu, cov = self._rows(n)
+        w, mu, cov = self.components(n)
         cum = np.cumsum(w, axis=1)
         comp = (rng.random((n, k, 1)) > cum[:, None, :-1]).sum(axis=2)
         rows = np.arange(n)[:, None]
@@ -271,19 +345,19 @@ class MixtureUncertainty:
     def pdf(self, offsets: np.ndarray) -> np.ndarray:
         """Density at an ``(n,3)`` offset: Σ w_k N(d; μ_k, C_k)."""
         d = np.asarray(offsets, dtype=np.float64)
-        w, mu, cov = self._rows(len(d))
+        w, mu, cov = self.components(len(d))
         return np.einsum("nk,nk->n", w, _gauss_pdf(d[:, None, :] - mu, cov))
 
     def pdf_many(self, offsets: np.ndarray) -> np.ndarray:
         """Densities at ``(n,S,3)`` offsets, S per element (one factorisation per component)."""
         d = np.asarray(offsets, dtype=np.float64)
-        w, mu, cov = self._rows(len(d))
+        w, mu, cov = self.components(len(d))
         rel = d[:, None, :, :] - mu[:, :, None, :]  # (n, K, S, 3)
         return np.einsum("nk,nks->ns", w, _gauss_pdf_many(rel, cov))
 
     def region99(self, n: int) -> Region99:
         """A sphere around the element holding at least 99 %: it encloses every component's 99 % ellipsoid."""
-        w, mu, cov = self._rows(n)
+        w, mu, cov = self.components(n)
         lam = np.linalg.eigvalsh(cov)[..., -1]
         radius = np.where(w > 0, np.linalg.norm(mu, axis=-1) + np.sqrt(CHI2_3_99 * np.clip(lam, 0, None)), 0).max(1)
         return Region99("sphere", np.zeros((n, 3)), np.repeat(radius[:, None], 3, axis=1),
@@ -293,15 +367,20 @@ class MixtureUncertainty:
 Uncertainty = GaussianUncertainty | BoxUncertainty | MixtureUncertainty
 
 
-def uncertainty_rows(u: Uncertainty) -> int:
-    """Rows an uncertainty model holds (1: one model shared by every element)."""
-    for name in ("cov", "half_widths", "weights"):
-        arr = getattr(u, name, None)
-        if arr is not None:
-            return arr.shape[0]
-    raise TypeError(type(u).__name__)
+def same_model(a: Uncertainty, b: Uncertainty) -> bool:
+    """Whether two models are the same (their array fields equal)."""
+    return type(a) is type(b) and all(
+        (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
+        for x, y in ((getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a) if f.init))
 
 
-def take_rows(u: Uncertainty, idx: np.ndarray) -> Uncertainty:
-    """The rows ``idx`` of an uncertainty model (a shared one-row model stays as it is)."""
-    return u if uncertainty_rows(u) == 1 else u.take(idx)
+def concat_uncertainty(parts: Sequence[Uncertainty], counts: Sequence[int]) -> Uncertainty:
+    """One model over the elements of ``parts`` one after the other (``counts[i]`` elements in part i); equal shared
+    one-row models stay shared."""
+    first = parts[0]
+    if any(type(p) is not type(first) for p in parts):
+        raise ValueError(f"tiles returned different uncertainty models: {sorted({type(p).__name__ for p in parts})}")
+    if all(p.rows == 1 for p in parts) and all(same_model(p, first) for p in parts[1:]):
+        return first
+    full = [p.repeated(n) for p, n in zip(parts, counts, strict=True) if n]
+    return type(first).stacked(full)  # type: ignore[arg-type]

@@ -23,7 +23,6 @@ from scipy.stats import chi2
 from gdt_pipeline import Correspondences, GaussianUncertainty, StageContext, StageSpec, hookimpl
 from gdt_pipeline.geometry import ReferenceIndex
 from gdt_pipeline.geometry.extent import check_scales
-from gdt_pipeline.measures import uncertainty_rows
 
 from .directed import (
     ReferenceMeshes,
@@ -159,7 +158,7 @@ def _directed_survey(params: DirectedParams, slots: Mapping[str, Any]) -> dict[s
 
 def _largest_variance(u: Any) -> float:
     """A bound on the largest variance of a model's rows: the largest trace (cheap, and ≥ the top eigenvalue)."""
-    cov = np.asarray(u.covariance(uncertainty_rows(u)))
+    cov = np.asarray(u.covariance(u.rows))
     return float(np.einsum("nii->n", cov).max()) if len(cov) else 0.0
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gdt_pipeline import Composite, Correspondences, Dataset, MixtureUncertainty
-from gdt_pipeline.geometry import quad_inv3
+from gdt_pipeline.geometry import quad_inv3, triangle_points
 
 
 @dataclass(frozen=True)
@@ -33,15 +33,9 @@ class Candidates:
     mixture: MixtureUncertainty | None = None
 
 
-def facet_areas(ds: Dataset) -> np.ndarray:
-    """Area of each facet of a mesh dataset."""
-    tri = ds.points[ds.faces]
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-
-
 def default_density(ds: Dataset) -> float:
     """About four samples on an average facet of the dataset."""
-    return 4.0 / max(float(facet_areas(ds).mean()), 1e-300)
+    return 4.0 / max(float(ds.facet_areas().mean()), 1e-300)
 
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
@@ -78,15 +72,12 @@ def query_samples(ds: Dataset, seed: int, density: float | None, max_per_facet: 
     tri = ds.points[ds.faces]
     if density is None:
         density = default_density(ds)
-    counts = np.clip(np.round(facet_areas(ds) * density).astype(np.int64), 1, max_per_facet)
+    counts = np.clip(np.round(ds.facet_areas() * density).astype(np.int64), 1, max_per_facet)
     idx = np.repeat(np.arange(len(tri)), counts)
     number = np.arange(len(idx)) - np.repeat(np.cumsum(counts) - counts, counts)
     with np.errstate(over="ignore"):
         r1, r2 = facet_uniforms(tri, idx, number, seed)
-    flip = r1 + r2 > 1
-    r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
-    t = tri[idx]
-    return idx, t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
+    return idx, triangle_points(tri, idx, r1, r2)
 
 
 def sampling_covariance(pos: np.ndarray, cov: np.ndarray, neighbours: int = 12) -> tuple[np.ndarray, np.ndarray]:

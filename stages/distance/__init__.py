@@ -63,8 +63,7 @@ def _bd_measure(p: BhattacharyyaParams, methods: set[str] | None = None, paths: 
         u_q, u_r = g.u_q, g.u_r
         if p.non_gaussian == "moment_match":
             n = len(g.idx)
-            u_q = u_q if isinstance(u_q, GaussianUncertainty) else GaussianUncertainty(u_q.covariance(n))
-            u_r = u_r if isinstance(u_r, GaussianUncertainty) else GaussianUncertainty(u_r.covariance(n))
+            u_q, u_r = u_q.moment_matched(n), u_r.moment_matched(n)
         bd, err, method = bhattacharyya(g.mu_q, u_q, g.mu_r, u_r, rng=rng, eps=p.epsilon, samples=p.samples,
                                         paths=paths)
         methods.add(method)
@@ -93,7 +92,7 @@ def hotelling(g: PairGroup, rng: np.random.Generator, params: HotellingParams | 
     """Hotelling's T² of each pair with known covariances, and its p-value from χ²(3) (Gaussians only)."""
     for u, role in ((g.u_q, "recent"), (g.u_r, "reference")):
         if not isinstance(u, GaussianUncertainty):
-            raise ValueError(f"{role} data has a {u.family!r} uncertainty: Hotelling's T² holds only for normal "
+            raise ValueError(f"{role} data has a {u.model!r} uncertainty: Hotelling's T² holds only for normal "
                              f"distributions (paper Sec. 4.2.1); use bhattacharyya for other families")
     n = len(g.idx)
     t2 = quad_inv3(g.u_q.covariance(n) + g.u_r.covariance(n), g.mu_q - g.mu_r)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
-from gdt_pipeline import BoxUncertainty, GaussianUncertainty, MixtureUncertainty
+from gdt_pipeline import BoxUncertainty, GaussianUncertainty, MixtureUncertainty, Uncertainty
 from gdt_pipeline.geometry import det3, quad_inv3, sym3
 
 from .box_probability import PATHS, gauss_box_bc, genz_box_probability
@@ -144,7 +144,7 @@ def bc_box_box(c1: np.ndarray, b1: BoxUncertainty, c2: np.ndarray, b2: BoxUncert
     return np.where(same, bc, np.nan), np.zeros(n)
 
 
-def bc_importance(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, rng: np.random.Generator,
+def bc_importance(mu1: np.ndarray, u1: Uncertainty, mu2: np.ndarray, u2: Uncertainty, rng: np.random.Generator,
                   samples: int, *, pilot: int = 256, rel_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
     """BC by importance sampling, adaptively: a pilot pass, then the full count only where the bound is loose.
 
@@ -157,13 +157,12 @@ def bc_importance(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, rng:
     bc, err = _bc_importance(mu1, u1, mu2, u2, rng, pilot)
     loose = np.flatnonzero((err > rel_tol * bc) & (bc > 1e-4))
     if loose.size:
-        a = u1.take(loose) if _rows(u1) > 1 else u1  # type: ignore[attr-defined]
-        b = u2.take(loose) if _rows(u2) > 1 else u2  # type: ignore[attr-defined]
+        a, b = u1.take(loose), u2.take(loose)
         bc[loose], err[loose] = _bc_importance(mu1[loose], a, mu2[loose], b, rng, samples)
     return bc, err
 
 
-def _bc_importance(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, rng: np.random.Generator,
+def _bc_importance(mu1: np.ndarray, u1: Uncertainty, mu2: np.ndarray, u2: Uncertainty, rng: np.random.Generator,
                    samples: int) -> tuple[np.ndarray, np.ndarray]:
     """BC of any pair of families by importance sampling from ½(p₁+p₂) (stratified half from each); 3·SE bound."""
     n = len(mu1)
@@ -173,7 +172,7 @@ def _bc_importance(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, rng
     chunk = max(1, 200_000 // half)
     for s in range(0, n, chunk):
         idx = np.arange(s, min(n, s + chunk))
-        a, b = u1.take(idx) if _rows(u1) > 1 else u1, u2.take(idx) if _rows(u2) > 1 else u2
+        a, b = u1.take(idx), u2.take(idx)
         k = len(idx)
         x1 = mu1[idx, None, :] + a.sample(k, rng, half)  # from p1
         x2 = mu2[idx, None, :] + b.sample(k, rng, half)  # from p2
@@ -204,7 +203,7 @@ def bc_gauss_mixture(mu1: np.ndarray, c1: np.ndarray, mu2: np.ndarray, mix: Mixt
                      rng: np.random.Generator, samples: int = 256) -> tuple[np.ndarray, np.ndarray]:
     """BC of a Gaussian N(μ₁, C₁) and a Gaussian mixture about μ₂, sampling the bound Σ √wₖ √(p Nₖ); 3·SE bound."""
     n = len(mu1)
-    w, m, cv = mix._rows(n)
+    w, m, cv = mix.components(n)
     k = w.shape[1]
     bc = np.zeros(n)
     err = np.zeros(n)
@@ -250,16 +249,7 @@ def bc_gauss_mixture(mu1: np.ndarray, c1: np.ndarray, mu2: np.ndarray, mix: Mixt
     return bc, err
 
 
-def _rows(u: object) -> int:
-    arr = getattr(u, "cov", None)
-    if arr is None:
-        arr = getattr(u, "half_widths", None)
-    if arr is None:
-        arr = u.weights  # type: ignore[attr-defined]
-    return arr.shape[0]
-
-
-def bhattacharyya(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, *, rng: np.random.Generator,
+def bhattacharyya(mu1: np.ndarray, u1: Uncertainty, mu2: np.ndarray, u2: Uncertainty, *, rng: np.random.Generator,
                   eps: float = 1e-6, samples: int = 4096, paths: dict[str, int] | None = None
                   ) -> tuple[np.ndarray, np.ndarray, str]:
     """BD of N pairs (families given per pair, rows aligned or shared), its per-pair BC error bound, and the method;
@@ -286,8 +276,7 @@ def bhattacharyya(mu1: np.ndarray, u1: object, mu2: np.ndarray, u2: object, *, r
         bc, err = bc_gauss_mixture(mu1, c1, mu2, u2, rng, min(samples, 64))
         loose = np.flatnonzero(err > 0.01 * bc)  # the bound is tight for most pairs; refine the rest
         if loose.size:
-            bc[loose], err[loose] = bc_gauss_mixture(mu1[loose], c1[loose], mu2[loose], u2.take(loose)
-                                                     if _rows(u2) > 1 else u2, rng, samples)
+            bc[loose], err[loose] = bc_gauss_mixture(mu1[loose], c1[loose], mu2[loose], u2.take(loose), rng, samples)
         return _bd(bc), err, "gaussian mixture bound sampling"
     if isinstance(u1, MixtureUncertainty | GaussianUncertainty | BoxUncertainty):
         bc, err = bc_importance(mu1, u1, mu2, u2, rng, samples)

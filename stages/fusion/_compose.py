@@ -73,7 +73,7 @@ def _gone_whole(it: CompositeItem, rov: RegionOfView, view: np.ndarray, matched:
     part is there or not, so its faces no station saw went with it."""
     if it.dataset.faces is None or it.key not in rov.seen_fraction or (view & matched & it.visible).any():
         return False
-    area = 0.5 * np.linalg.norm(it.dataset.facet_normals(), axis=1) * it.visible
+    area = it.dataset.facet_areas() * it.visible
     return bool(area.sum() > 0 and (area * rov.removed_fraction[it.key]).sum() >= 0.1 * area.sum())
 
 

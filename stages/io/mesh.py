@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from gdt_pipeline import Dataset, InputError, ReadRequest
+from gdt_pipeline.geometry import triangle_normals
 
 from .ply import read_ply
 from .text import nonfinite
@@ -120,7 +121,7 @@ def check_triangles(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None
 def degenerate_mask(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Mask of the faces without an area: a repeated vertex index, collinear or coincident corners."""
     a, b, c = (vertices[faces[:, k]] for k in range(3))
-    doubled_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    doubled_area = np.linalg.norm(triangle_normals(vertices[faces]), axis=1)
     longest = np.max([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)], axis=0)
     repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
     return repeated | (doubled_area <= DEGENERATE_AREA * longest)

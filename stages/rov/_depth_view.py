@@ -141,7 +141,8 @@ def depth_view(reference: Composite, rov: RegionOfView, recent: list[Dataset], s
     looks = []
     for item in reference.items:
         ds = item.dataset
-        area_spacing = max(spacing, np.sqrt(_total_area(ds) / MAX_SAMPLES)) if ds.faces is not None else spacing
+        area_spacing = spacing if ds.faces is None else max(spacing, float(np.sqrt(ds.facet_areas().sum() /
+                                                                                     MAX_SAMPLES)))
         # a facet turned away from every station is judged by none (sample_states culls it per sample): one
         # sample carries its "not seen" as well as m² (the bottom of a part held 40 % of the samples)
         away = facing_no_station(ds, stations) if ds.faces is not None and p.cull_back_faces else None
@@ -185,10 +186,6 @@ def facing_no_station(ds: Dataset, stations: list[Station]) -> np.ndarray:
         front = np.einsum("fj,fkj->fk", normals, st.eye - tri).max(axis=1) > -tol
         away &= ~front
     return away
-
-
-def _total_area(ds: Dataset) -> float:
-    return float(0.5 * np.linalg.norm(ds.facet_normals(), axis=1).sum())
 
 
 def default_stations(p: Any, recent: list[Dataset], rov: RegionOfView) -> list[Station]:

@@ -31,7 +31,7 @@ def area_samples(ds: Dataset, spacing: float, cap: int, single: np.ndarray | Non
     if ds.faces is None:
         return np.asarray(ds.points), np.arange(len(ds.points))
     tri = ds.points[ds.faces]
-    area = 0.5 * np.linalg.norm(ds.facet_normals(), axis=1)
+    area = ds.facet_areas()
     per_side = np.clip(np.ceil(np.sqrt(area / max(spacing, 1e-12) ** 2)), 1, max(1, int(np.sqrt(cap))))
     per_side = per_side.astype(np.int64)
     if single is not None:

@@ -35,8 +35,8 @@ def registration_propagation(ctx: StageContext) -> dict[str, Any]:
         if unc is None:
             raise ValueError(f"dataset {ds.name!r} has no uncertainty to add the registration's to")
         if not isinstance(unc, GaussianUncertainty) and ctx.params.non_gaussian == "error":
-            raise ValueError(f"dataset {ds.name!r} has a {unc.family!r} uncertainty; adding a Gaussian registration "
-                             f"error to it is not a {unc.family} (set `non_gaussian: moment_match`)")
+            raise ValueError(f"dataset {ds.name!r} has a {unc.model!r} uncertainty; adding a Gaussian registration "
+                             f"error to it is not a {unc.model} (set `non_gaussian: moment_match`)")
         extra = propagate_registration(ds.element_positions() - reg.center, reg.covariance)
         return ds.with_uncertainty(GaussianUncertainty(ds.element_covariance() + extra))
 

@@ -1,0 +1,46 @@
+"""The 99 % probability region of a per-element distribution: an ellipsoid, a box or a sphere of offsets."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+CHI2_3_99 = 11.344866730144373  # chi-square quantile, 3 degrees of freedom, p = 0.99 (scipy.stats.chi2.ppf)
+BOX_99 = 0.99 ** (1.0 / 3.0)  # a centred box scaled by this holds 99 % of a uniform box's mass
+
+
+@dataclass(frozen=True)
+class Region99:
+    """The 99 % probability region of each element's distribution, as offsets from the element's position.
+
+    ``kind`` is "ellipsoid" (``half_axes`` are the radii along the columns of ``axes``), "box" (``half_axes`` are
+    half-widths along ``axes``) or "sphere" (``half_axes[:, 0]`` is the radius; a conservative region holding at
+    least 99 %, used for mixtures).
+    """
+
+    kind: Literal["ellipsoid", "box", "sphere"]
+    center: np.ndarray
+    half_axes: np.ndarray
+    axes: np.ndarray
+
+    def contains(self, offsets: np.ndarray) -> np.ndarray:
+        """Whether each ``(n,3)`` offset (point minus element position) lies in its element's region."""
+        d = np.asarray(offsets, dtype=np.float64) - self.center
+        if self.kind == "sphere":
+            return np.linalg.norm(d, axis=-1) <= self.half_axes[..., 0]
+        local = np.einsum("nji,nj->ni", self.axes, d)
+        scaled = np.divide(local, self.half_axes, out=np.full_like(local, np.inf), where=self.half_axes > 0)
+        scaled[(self.half_axes == 0) & (np.abs(local) < 1e-15)] = 0.0
+        if self.kind == "box":
+            return np.all(np.abs(scaled) <= 1.0, axis=-1)
+        return np.einsum("ni,ni->n", scaled, scaled) <= 1.0
+
+    def bounding_radius(self) -> np.ndarray:
+        """Radius of a sphere around the element position that holds the whole region (for KD-tree searches)."""
+        c = np.linalg.norm(self.center, axis=-1)
+        if self.kind == "sphere":
+            return c + self.half_axes[..., 0]
+        if self.kind == "box":
+            return c + np.linalg.norm(self.half_axes, axis=-1)
+        return c + self.half_axes.max(axis=-1)

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gdt_pipeline import BoxUncertainty
-from stages.distance.measures import bc_gauss_box, bd_gauss_gauss
+from stages.distance.bhattacharyya_maths import bc_gauss_box, bd_gauss_gauss
 
 
 def _timed(fn, *args, **kw) -> float:

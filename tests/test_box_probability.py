@@ -10,9 +10,11 @@ from scipy.spatial.transform import Rotation
 from scipy.special import ndtr, owens_t
 
 from gdt_pipeline import BoxUncertainty
+from stages.distance.bhattacharyya_maths import bc_gauss_box
 from stages.distance.box_probability import PATHS, box_probability
-from stages.distance.measures import bc_gauss_box, box_prob_genz
 from stages.distance.normal_orthants import BVN_ERROR, bvn_lower
+
+from .genz_reference import box_prob_genz
 
 
 def _bvn_owen(h: np.ndarray, k: np.ndarray, r: np.ndarray) -> np.ndarray:

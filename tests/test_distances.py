@@ -25,7 +25,7 @@ from gdt_pipeline import (
     MixtureUncertainty,
     StageContext,
 )
-from stages.distance.measures import (
+from stages.distance.bhattacharyya_maths import (
     bc_box_box,
     bc_gauss_box,
     bc_gauss_mixture,

@@ -15,6 +15,7 @@ from gdt_pipeline import (
     Dataset,
     EpochInfo,
     GaussianUncertainty,
+    ItemView,
     RegionOfView,
 )
 from gdt_pipeline.plugins import StageContext, load_registry
@@ -46,9 +47,9 @@ def _run(registry, name: str, reference: Composite, recent: list[Dataset], chang
     spec = registry.get(name)
     info = EpochInfo(id="E2", index=2, role="as-is", seed=0, workflow_dir=".", units="m")
     rov = RegionOfView.box([-1, -1, -1], [3, 2, 1])
-    rov = RegionOfView(rov.vertices, rov.faces, in_view={it.key: np.ones(it.dataset.n_elements, bool)
-                                                         for it in reference.items},
-                       matched={it.key: np.ones(it.dataset.n_elements, bool) for it in reference.items})
+    everything = {it.key: ItemView(np.ones(it.dataset.n_elements, bool), np.ones(it.dataset.n_elements, bool))
+                  for it in reference.items}
+    rov = RegionOfView(rov.vertices, rov.faces, views=everything)
     slots = {"recent": recent, "reference": reference, "change": changes, "rov": rov, "epoch": info}
     ctx = StageContext(stage=spec, params=spec.params(**params), slots=slots, epoch=info,
                        rng=np.random.default_rng(0), seed=0, log=logging.getLogger("test"))

@@ -67,12 +67,12 @@ def test_removed_object_in_view_is_removed_and_an_object_hidden_behind_another_s
     ctx = stage_ctx(registry, "manual_box", {"lower": [0.5, -2, -2], "upper": [5, 2, 2], "sight": sight}, [scan],
                reference, tmp_path)
     rov = registry.get("manual_box").run(ctx)["rov"]
-    view_a, view_b = rov.in_view["E0_a"], rov.in_view["E0_b"]
+    view_a, view_b = rov.views["E0_a"].in_view, rov.views["E0_b"].in_view
     facing = np.einsum("ij,ij->i", cube_a.face_normals, eye - cube_a.triangles_center) > 0  # look at the sensor
     assert view_a[facing].all() and not view_a[~facing].any()
     assert not view_b.any()  # behind the wall: occluded (one crossing of the wall's measured surface)
-    assert not rov.matched["E0_a"][view_a].any()
-    assert rov.matched["E0_back"][rov.in_view["E0_back"]].mean() > 0.95
+    assert not rov.views["E0_a"].matched[view_a].any()
+    assert rov.views["E0_back"].matched[rov.views["E0_back"].in_view].mean() > 0.95
     fusion = registry.get("keep_unchanged")
     fctx = stage_ctx(registry, "keep_unchanged", {}, [scan], reference, tmp_path)
     fctx.slots["rov"] = rov
@@ -104,11 +104,11 @@ def test_parity_on_a_non_watertight_mesh_and_two_disconnected_components(registr
                 GaussianUncertainty(np.broadcast_to(np.eye(3) * 1e-8, (len(f), 3, 3)))))
         box = {"lower": [0.5, -2, -2], "upper": [6, 2, 2], "sight": "plane"}
         ctx = stage_ctx(registry, "manual_box", box, recent, reference, tmp_path)
-        view = registry.get("manual_box").run(ctx)["rov"].in_view["E0_t"]
+        view = registry.get("manual_box").run(ctx)["rov"].views["E0_t"].in_view
         # one crossing: odd, hidden; two disconnected sheets: even, in view by the paper's parity rule
         assert (not view.any()) if hidden else view.all()
         ctx = stage_ctx(registry, "manual_box", {**box, "rule": "any"}, recent, reference, tmp_path)
-        assert not registry.get("manual_box").run(ctx)["rov"].in_view["E0_t"].any()
+        assert not registry.get("manual_box").run(ctx)["rov"].views["E0_t"].in_view.any()
 
 
 def test_sensor_frustum_from_the_pose_file(registry, tmp_path) -> None:
@@ -167,8 +167,8 @@ def test_sight_to_the_stations_where_the_plane_of_sight_cuts_through_the_scene(r
     for sight in ("plane", "stations", "depth"):
         ctx = stage_ctx(registry, "manual_box", {**box, "sight": sight}, recent, reference, tmp_path)
         rov = registry.get("manual_box").run(ctx)["rov"]
-        views[sight] = rov.in_view["E0_cube"]
-        assert not rov.matched["E0_cube"][views[sight]].any()
+        views[sight] = rov.views["E0_cube"].in_view
+        assert not rov.views["E0_cube"].matched[views[sight]].any()
     assert not views["plane"][face].any()
     assert views["stations"][face].all()
     assert views["depth"][face].all()  # A saw the far wall through the face's place
@@ -195,9 +195,9 @@ def test_a_confirmed_thin_part_hides_the_face_right_behind_it(registry, tmp_path
         ctx = stage_ctx(registry, "manual_box", {"lower": [1, -1, -1], "upper": [3, 1, 1], "sight": "plane",
                                             "confirmed_occlude": confirmed}, [scan], reference, tmp_path)
         rov = registry.get("manual_box").run(ctx)["rov"]
-        views[confirmed] = rov.in_view["E0_cube"][front]
-        assert rov.matched["E0_plate"][plate.face_normals[:, 0] < -0.9].all()
+        views[confirmed] = rov.views["E0_cube"].in_view[front]
+        assert rov.views["E0_plate"].matched[plate.face_normals[:, 0] < -0.9].all()
     assert views[False].all() and not views[True].any()
     # a depth image needs no such help: the plate's measured surface stands 4 mm (40 σ) in front of the face
     ctx = stage_ctx(registry, "manual_box", {"lower": [1, -1, -1], "upper": [3, 1, 1]}, [scan], reference, tmp_path)
-    assert not registry.get("manual_box").run(ctx)["rov"].in_view["E0_cube"][front].any()
+    assert not registry.get("manual_box").run(ctx)["rov"].views["E0_cube"].in_view[front].any()

@@ -12,10 +12,10 @@ import trimesh
 
 from gdt_pipeline import Composite, Dataset, GaussianUncertainty
 from gdt_pipeline.plugins import load_registry
+from gdt_pipeline.region_of_view.samples import area_samples, sub_centroids
 from gdt_pipeline.runner import read_pose_file
 from gdt_pipeline.sensors import SensorProfile
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
-from stages.rov._samples import area_samples, sub_centroids
 from tests.rov_helpers import cad_item, stage_ctx
 
 EYE = np.zeros(3)
@@ -82,12 +82,12 @@ def test_noisy_tof_scan_finds_the_removed_cabinet_and_keeps_the_present_one(regi
     rov = registry.get("manual_box").run(ctx)["rov"]
     facing = {"E0_removed": _facing(removed), "E0_present": _facing(present)}
     assert facing["E0_removed"].sum() == 4  # the front and the side towards the sensor, at 81°
-    gone = rov.in_view["E0_removed"] & ~rov.matched["E0_removed"]
+    gone = rov.views["E0_removed"].in_view & ~rov.views["E0_removed"].matched
     assert _area(removed, gone & facing["E0_removed"]) / _area(removed, facing["E0_removed"]) >= 0.95
-    kept = rov.in_view["E0_present"] & rov.matched["E0_present"]
+    kept = rov.views["E0_present"].in_view & rov.views["E0_present"].matched
     assert _area(present, kept & facing["E0_present"]) / _area(present, facing["E0_present"]) >= 0.95
-    assert not (rov.in_view["E0_present"] & ~rov.matched["E0_present"]).any()
-    assert not (rov.in_view["E0_plate"] & ~rov.matched["E0_plate"]).any()  # the plate behind both is there
+    assert not (rov.views["E0_present"].in_view & ~rov.views["E0_present"].matched).any()
+    assert not (rov.views["E0_plate"].in_view & ~rov.views["E0_plate"].matched).any()  # the plate behind both is there
 
 
 def test_a_large_facet_is_judged_on_its_area_not_its_middle(registry, tmp_path) -> None:
@@ -107,10 +107,11 @@ def test_a_large_facet_is_judged_on_its_area_not_its_middle(registry, tmp_path) 
         GaussianUncertainty(np.broadcast_to(np.eye(3) * 1e-6, (len(pts), 3, 3))))
     ctx = stage_ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [scan], reference, tmp_path)
     rov = registry.get("manual_box").run(ctx)["rov"]
-    assert rov.in_view["E0_plate"].all() and not rov.matched["E0_plate"].any()  # removed: most of it is gone
+    plate = rov.views["E0_plate"]
+    assert plate.in_view.all() and not plate.matched.any()  # removed: most of it is gone
     kept_share = 2 * 0.3 * 0.3 / 1.0  # the two found squares (each inside its triangle) of the plate's area
-    assert np.allclose(rov.removed_fraction["E0_plate"], 1 - kept_share, atol=0.06)
-    assert np.allclose(rov.seen_fraction["E0_plate"], 1.0)
+    assert np.allclose(rov.views["E0_plate"].removed_fraction, 1 - kept_share, atol=0.06)
+    assert np.allclose(rov.views["E0_plate"].seen_fraction, 1.0)
 
 
 def test_empty_space_counts_as_seen_through_only_within_a_pose_files_range(registry, tmp_path) -> None:
@@ -123,7 +124,7 @@ def test_empty_space_counts_as_seen_through_only_within_a_pose_files_range(regis
     facing = _facing(cube)
     ctx = stage_ctx(registry, "sensor_frustum", {}, [scan], reference, tmp_path)
     rov = registry.get("sensor_frustum").run(ctx)["rov"]
-    assert not rov.in_view["E0_cube"].any()  # no evidence either way: outside the region of view
+    assert not rov.views["E0_cube"].in_view.any()  # no evidence either way: outside the region of view
     pose = {"viewpoint": [0, 0, 0], "target": [2.5, 0, 0], "scanner": {"kind": "pinhole", "fov_deg": 30.0,
                                                                        "aspect": 1.0, "max_range": 10.0}}
     pose_file = tmp_path / "scan_pose.json"
@@ -131,8 +132,8 @@ def test_empty_space_counts_as_seen_through_only_within_a_pose_files_range(regis
     scan = dataclasses.replace(scan, pose=read_pose_file(pose_file))  # as the engine gives it to every stage
     ctx = stage_ctx(registry, "sensor_frustum", {}, [scan], reference, tmp_path)
     rov = registry.get("sensor_frustum").run(ctx)["rov"]
-    assert rov.in_view["E0_cube"][facing].all() and not rov.matched["E0_cube"][facing].any()
-    assert rov.matched["E0_other"][rov.in_view["E0_other"]].all()
+    assert rov.views["E0_cube"].in_view[facing].all() and not rov.views["E0_cube"].matched[facing].any()
+    assert rov.views["E0_other"].matched[rov.views["E0_other"].in_view].all()
 
 
 def test_the_view_does_not_depend_on_the_order_of_the_points(registry, tmp_path) -> None:
@@ -147,6 +148,7 @@ def test_the_view_does_not_depend_on_the_order_of_the_points(registry, tmp_path)
     for ds in (scan, shuffled):
         ctx = stage_ctx(registry, "manual_box", {"lower": [2, -1, -1], "upper": [4, 1, 1]}, [ds], reference, tmp_path)
         rov = registry.get("manual_box").run(ctx)["rov"]
-        views.append((rov.in_view["E0_removed"], rov.matched["E0_removed"], rov.removed_fraction["E0_removed"]))
+        removed = rov.views["E0_removed"]
+        views.append((removed.in_view, removed.matched, removed.removed_fraction))
     for a, b in zip(*views, strict=True):
         assert np.array_equal(a, b)

@@ -7,9 +7,17 @@ import numpy as np
 import trimesh
 
 from gdt_pipeline import GaussianUncertainty
+from gdt_pipeline.region_of_view.depth import (
+    FOOTPRINT,
+    Station,
+    angles,
+    build_image,
+    facing_normals,
+    pixel_cells,
+    window_votes,
+)
+from gdt_pipeline.region_of_view.window_kernel import window_sides
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
-from stages.rov._depth import FOOTPRINT, Station, angles, build_image, facing_normals, pixel_cells, window_votes
-from stages.rov.window_kernel import window_sides
 
 EYE = np.zeros(3)
 K = 3.0
@@ -59,7 +67,7 @@ def _reference(img, pos: np.ndarray, cov: np.ndarray, tris: np.ndarray | None) -
                     if tris is not None and not _ray_meets_facet(p, tris[s], FOOTPRINT * img.pixel * depth[s]):
                         continue
                     c6 = img.cov6[j]
-                    c = np.array([[c6[0], c6[3], c6[4]], [c6[3], c6[1], c6[5]], [c6[4], c6[5], c6[2]]])
+                    c = np.array([[c6[0], c6[1], c6[2]], [c6[1], c6[3], c6[4]], [c6[2], c6[4], c6[5]]])
                     offset, var_p = n @ (p - pos[s]), n @ c @ n
                     tol = K * np.sqrt(var_p + var_e)
                     side = 0 if offset > tol else (2 if offset < -tol else 1)

@@ -69,12 +69,7 @@ def crop_composite(composite: Composite, lower: np.ndarray, upper: np.ndarray,
 def crop_rov(rov: RegionOfView, keeps: Sequence[np.ndarray], keys: Sequence[str]) -> RegionOfView:
     """The region of view with its per-element judgements of the reference cut like the reference."""
     by_key = dict(zip(keys, keeps, strict=True))
-
-    def cut(table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {k: v[by_key[k]] if k in by_key else v for k, v in table.items()}
-
-    return dataclasses.replace(rov, in_view=cut(rov.in_view), matched=cut(rov.matched),
-                               seen_fraction=cut(rov.seen_fraction), removed_fraction=cut(rov.removed_fraction))
+    return dataclasses.replace(rov, views={k: v.take(by_key[k]) if k in by_key else v for k, v in rov.views.items()})
 
 
 def lookup(sorted_ids: np.ndarray) -> IndexMap:

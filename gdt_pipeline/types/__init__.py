@@ -11,7 +11,7 @@ is treated as infinitely many points that share the facet's uncertainty (paper S
 from .arrays import broadcast_rows, frozen_array
 from .composite import Composite, CompositeItem, EpochInfo, Segment
 from .correspondences import Correspondences
-from .data import Change, Dataset, RegionOfView, Registration, Scores, SourceInfo
+from .data import Change, Dataset, ItemView, RegionOfView, Registration, Scores, SourceInfo
 from .pose import POSE_SOURCES, SensorPose
 from .region99 import BOX_99, CHI2_3_99, Region99
 from .states import ChangeState, FusionReason, Kind, Role
@@ -31,6 +31,7 @@ __all__ = [
     "EpochInfo",
     "FusionReason",
     "GaussianUncertainty",
+    "ItemView",
     "Kind",
     "MixtureUncertainty",
     "Region99",

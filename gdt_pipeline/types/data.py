@@ -122,22 +122,36 @@ class Dataset:
 
 
 @dataclass(frozen=True)
+class ItemView:
+    """What a region-of-view stage found of one reference item, per element: in view (inside the volume and seen,
+    not occluded), matched (the recent data confirms it present) and, where the stage judged elements by their
+    area, the share of each element's area a station saw (present or seen through) and saw through (removed)."""
+
+    in_view: np.ndarray
+    matched: np.ndarray
+    seen_fraction: np.ndarray | None = None
+    removed_fraction: np.ndarray | None = None
+
+    def take(self, elements: np.ndarray) -> ItemView:
+        """The view of the elements ``elements``."""
+        def sub(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[elements]
+
+        return ItemView(self.in_view[elements], self.matched[elements], sub(self.seen_fraction),
+                        sub(self.removed_fraction))
+
+
+@dataclass(frozen=True)
 class RegionOfView:
     """The space the sensors of an epoch measured: closed triangle surfaces (their union; ``parts`` gives the facet
     count of each closed part, default one part) with a vectorised ``contains``; and, once a region-of-view stage
-    has looked at the reference, per reference item which elements were in view (inside and not occluded) and which
-    of those the recent data matched."""
+    has looked at the reference, per reference item (by key) what it found of its elements (``views``)."""
 
     vertices: np.ndarray
     faces: np.ndarray
     parts: tuple[int, ...] = ()
-    in_view: dict[str, np.ndarray] = field(default_factory=dict)
-    matched: dict[str, np.ndarray] = field(default_factory=dict)
+    views: dict[str, ItemView] = field(default_factory=dict)
     method: str = ""
-    # per reference item, the share of each element's area a station saw (present or seen through) and saw
-    # through (removed); empty where the stage judged elements whole
-    seen_fraction: dict[str, np.ndarray] = field(default_factory=dict)
-    removed_fraction: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         verts = frozen_array(self.vertices, np.float64, (None, 3), "region of view vertices")

@@ -35,7 +35,7 @@ from gdt_pipeline.measures import (
     run_pair_measure,
 )
 
-from .measures import bd_gauss_gauss, bhattacharyya
+from .bhattacharyya_maths import bd_gauss_gauss, bhattacharyya
 
 bhattacharyya_gaussian = bd_gauss_gauss  # the closed form, kept under its descriptive name
 

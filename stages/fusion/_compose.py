@@ -9,7 +9,16 @@ from typing import Any
 
 import numpy as np
 
-from gdt_pipeline import ChangeState, Composite, CompositeItem, FusionReason, RegionOfView, Segment, StageContext
+from gdt_pipeline import (
+    ChangeState,
+    Composite,
+    CompositeItem,
+    FusionReason,
+    ItemView,
+    RegionOfView,
+    Segment,
+    StageContext,
+)
 
 from ._fitting import fit_parts
 from ._moved import moved
@@ -48,10 +57,11 @@ def _carried(reference: Composite, rov: RegionOfView | None, whole_parts: bool =
         # hidden elements keep the reason they left with; what is still shown is "kept" until this epoch says more
         reason = np.where(it.visible, FusionReason.KEPT, it.reason).astype(np.uint8)
         ratio = np.where(it.visible, np.nan, it.reason_ratio)
-        if rov is not None and it.key in rov.in_view:
-            view, matched = rov.in_view[it.key], rov.matched[it.key]
+        seen = None if rov is None else rov.views.get(it.key)
+        if seen is not None:
+            view, matched = seen.in_view, seen.matched
             removed = view & ~matched & it.visible
-            if whole_parts and _gone_whole(it, rov, view, matched):
+            if whole_parts and _gone_whole(it, seen):
                 removed = it.visible.copy()
             state = np.where(state == ChangeState.OUTSIDE_ROV, ChangeState.UNCHANGED, state).astype(np.uint8)
             state[it.visible & ~view] = ChangeState.OUTSIDE_ROV
@@ -60,7 +70,7 @@ def _carried(reference: Composite, rov: RegionOfView | None, whole_parts: bool =
             reason[removed] = FusionReason.REMOVED
             visible = it.visible & ~removed
             removed_now[len(items)] = removed
-            areas = _areas(it, rov)
+            areas = _areas(it, seen)
         else:
             areas = {}
         items.append(dataclasses.replace(it, state=state, visible=visible, reason=reason, reason_ratio=ratio,
@@ -68,22 +78,22 @@ def _carried(reference: Composite, rov: RegionOfView | None, whole_parts: bool =
     return items, removed_now
 
 
-def _gone_whole(it: CompositeItem, rov: RegionOfView, view: np.ndarray, matched: np.ndarray) -> bool:
+def _gone_whole(it: CompositeItem, seen: ItemView) -> bool:
     """Whether a mesh part was seen on at least a tenth of its (visible) area, all of that seen through: a rigid
     part is there or not, so its faces no station saw went with it."""
-    if it.dataset.faces is None or it.key not in rov.seen_fraction or (view & matched & it.visible).any():
+    if it.dataset.faces is None or seen.removed_fraction is None or (seen.in_view & seen.matched & it.visible).any():
         return False
     area = it.dataset.facet_areas() * it.visible
-    return bool(area.sum() > 0 and (area * rov.removed_fraction[it.key]).sum() >= 0.1 * area.sum())
+    return bool(area.sum() > 0 and (area * seen.removed_fraction).sum() >= 0.1 * area.sum())
 
 
-def _areas(it: CompositeItem, rov: RegionOfView) -> dict[str, np.ndarray]:
+def _areas(it: CompositeItem, seen: ItemView) -> dict[str, np.ndarray]:
     """This epoch's shares of area seen and removed where the region of view judged the item by area; elements
     hidden before keep the shares they left with."""
-    if it.key not in rov.seen_fraction:
+    if seen.seen_fraction is None or seen.removed_fraction is None:
         return {}
     out = {}
-    for name, now in (("area_seen", rov.seen_fraction[it.key]), ("area_removed", rov.removed_fraction[it.key])):
+    for name, now in (("area_seen", seen.seen_fraction), ("area_removed", seen.removed_fraction)):
         before = getattr(it, name)
         before = np.full(len(now), np.nan) if before is None else before
         out[name] = np.where(it.visible, now, before)

@@ -54,10 +54,10 @@ def _known_in_view(items: list[CompositeItem], rov: RegionOfView, keep_design: b
     """The visible known elements inside the region of view; None when there are none."""
     pos, owner, elem, design = [], [], [], []
     for i, it in enumerate(items):
-        view = rov.in_view.get(it.key)
-        if view is None:
+        seen = rov.views.get(it.key)
+        if seen is None:
             continue
-        idx = np.flatnonzero(view & it.visible)
+        idx = np.flatnonzero(seen.in_view & it.visible)
         pos.append(it.dataset.element_positions()[idx])
         owner.append(np.full(idx.size, i))
         elem.append(idx)

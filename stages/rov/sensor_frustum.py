@@ -4,19 +4,16 @@ tightest pinhole frustum around the directions to the dataset's own points (plus
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from pydantic import Field, PositiveFloat
 
 from gdt_pipeline import Dataset, RegionOfView, StageContext
-
-from ._depth import Station, view_frame
-from ._look import look
-from ._occlusion import OcclusionParams
+from gdt_pipeline.region_of_view import SightParams, Station, Volume, rov_stage, view_frame
 
 
-class FrustumParams(OcclusionParams):
+class FrustumParams(SightParams):
     """The union of the sensors' frusta."""
 
     fov_deg: float | None = Field(None, gt=0, lt=180, description="Horizontal field of view when no pose file says "
@@ -89,8 +86,8 @@ def _dataset_frusta(ds: Dataset, p: FrustumParams) -> list[Frustum]:
     return out
 
 
-def sensor_frustum(ctx: StageContext) -> dict[str, Any]:
-    """The union of the sensors' frusta, minus what recent data occludes."""
+def frustum_volume(ctx: StageContext) -> Volume:
+    """The union of the sensors' frusta, each frustum its own station's volume."""
     frusta, owner = [], []
     for i, ds in enumerate(ctx["recent"]):
         found = _dataset_frusta(ds, ctx.params)
@@ -107,4 +104,9 @@ def sensor_frustum(ctx: StageContext) -> dict[str, Any]:
     rov = RegionOfView(np.vstack(verts), np.vstack(faces), tuple(len(fr.faces) for fr in frusta))
     stations = [Station(fr.eye, lambda q, k=k: rov.contains(q, part=k), (i,), fr.free_range)
                 for k, (fr, i) in enumerate(zip(frusta, owner, strict=True))]
-    return look(ctx, rov, [fr.how for fr in frusta], stations)
+    return Volume(rov, [fr.how for fr in frusta], stations)
+
+
+SPEC = rov_stage(name="sensor_frustum", build=frustum_volume, params=FrustumParams, version="1.1.0",
+                 description="Union of the sensors' frusta; in view where a station saw the element's place "
+                             "(`sight`: depth images by default).")

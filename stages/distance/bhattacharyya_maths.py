@@ -21,15 +21,11 @@ Every function returns BC together with a per-pair error bound (0 for closed for
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import ndtr
 
 from gdt_pipeline import BoxUncertainty, GaussianUncertainty, MixtureUncertainty, Uncertainty
-from gdt_pipeline.geometry import det3, quad_inv3, sym3
+from gdt_pipeline.geometry import det3, inv3, quad_inv3
 
-from .box_probability import PATHS, gauss_box_bc, genz_box_probability
-
-K_SQRT = (8.0 * np.pi) ** 0.75
-_CHUNK = 20_000
+from .box_probability import K_SQRT, PATHS, gauss_box_bc, genz_box_probability
 
 
 def bd_gauss_gauss(mu1: np.ndarray, c1: np.ndarray, mu2: np.ndarray, c2: np.ndarray) -> np.ndarray:
@@ -37,11 +33,6 @@ def bd_gauss_gauss(mu1: np.ndarray, c1: np.ndarray, mu2: np.ndarray, c2: np.ndar
     c = 0.5 * (c1 + c2)
     maha = quad_inv3(c, mu2 - mu1)
     return maha / 8.0 + 0.5 * (np.log(det3(c)) - 0.5 * (np.log(det3(c1)) + np.log(det3(c2))))
-
-
-def _phi_diff(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Φ(hi) − Φ(lo) without cancellation in the upper tail."""
-    return np.where(lo > 0, ndtr(-lo) - ndtr(-hi), ndtr(hi) - ndtr(lo))
 
 
 def _box_frame(mu: np.ndarray, cov: np.ndarray, box: BoxUncertainty, center: np.ndarray
@@ -52,53 +43,6 @@ def _box_frame(mu: np.ndarray, cov: np.ndarray, box: BoxUncertainty, center: np.
     m = np.einsum("nji,nj->ni", axes, mu - center)
     c2 = 2.0 * np.einsum("nji,njk,nkl->nil", axes, cov, axes)
     return m, 0.5 * (c2 + np.swapaxes(c2, 1, 2)), np.broadcast_to(box.half_widths, (n, 3))
-
-
-def _gauss_legendre(order: int) -> tuple[np.ndarray, np.ndarray]:
-    t, w = np.polynomial.legendre.leggauss(order)
-    return 0.5 * (t + 1.0), 0.5 * w
-
-
-def box_prob_genz(m: np.ndarray, c: np.ndarray, h: np.ndarray, order: int) -> np.ndarray:
-    """P(−h ≤ X ≤ h), X ~ N(m, C), by sequential conditioning (Genz) with Gauss–Legendre in the outer two levels.
-
-    The outer levels integrate over the standardised variable z (density φ(z), interval cut at ±6 where each tail
-    holds 1e-9) rather than over u = Φ(z): in u the integrand has log singularities at the ends (z = Φ⁻¹(u)), so
-    the quadrature converged only algebraically (20 % of sub-millimetre Gaussians against a 2 mm box still off by
-    1e-5 at order 56), while in z it converges exponentially (1e-8 by order 20). Variables are reordered per pair,
-    narrowest interval in standard deviations first.
-    """
-    width = h / np.sqrt(np.diagonal(c, axis1=1, axis2=2))
-    perm = np.argsort(width, axis=1)
-    rows = np.arange(len(m))[:, None]
-    m, h = m[rows, perm], h[rows, perm]
-    c = c[rows[:, :, None], perm[:, :, None], perm[:, None, :]]
-    chol = np.linalg.cholesky(c)
-    lo, hi = -h - m, h - m
-    t, w = _gauss_legendre(order)
-    out = np.empty(len(m))
-    for s in range(0, len(m), _CHUNK):
-        L = chol[s:s + _CHUNK]
-        a, b = lo[s:s + _CHUNK], hi[s:s + _CHUNK]
-        lo1 = np.clip(a[:, 0] / L[:, 0, 0], -_Z_CUT, _Z_CUT)
-        hi1 = np.clip(b[:, 0] / L[:, 0, 0], -_Z_CUT, _Z_CUT)
-        z1 = lo1[:, None] + (hi1 - lo1)[:, None] * t[None, :]  # (n, q)
-        w1 = (hi1 - lo1)[:, None] * w[None, :] * _INV_SQRT_2PI * np.exp(-0.5 * z1 * z1)
-        lo2 = np.clip((a[:, 1, None] - L[:, 1, 0, None] * z1) / L[:, 1, 1, None], -_Z_CUT, _Z_CUT)
-        hi2 = np.clip((b[:, 1, None] - L[:, 1, 0, None] * z1) / L[:, 1, 1, None], -_Z_CUT, _Z_CUT)
-        z2 = lo2[..., None] + (hi2 - lo2)[..., None] * t[None, None, :]  # (n, q, q)
-        w2 = (hi2 - lo2)[..., None] * w[None, None, :] * _INV_SQRT_2PI * np.exp(-0.5 * z2 * z2)
-        shift = L[:, 2, 0, None, None] * z1[..., None] + L[:, 2, 1, None, None] * z2
-        a3 = (a[:, 2, None, None] - shift) / L[:, 2, 2, None, None]
-        b3 = (b[:, 2, None, None] - shift) / L[:, 2, 2, None, None]
-        out[s:s + _CHUNK] = np.einsum("nq,nqr,nqr->n", w1, w2, _phi_diff(a3, b3))
-    return out
-
-
-_Z_CUT = 6.0  # one tail beyond holds 1e-9: far below the 1e-6 tolerance on BC
-_INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
-
-
 
 
 def bc_gauss_box(mu: np.ndarray, cov: np.ndarray, center: np.ndarray, box: BoxUncertainty, *, eps: float = 1e-6,
@@ -189,16 +133,6 @@ def _bc_importance(mu1: np.ndarray, u1: Uncertainty, mu2: np.ndarray, u2: Uncert
     return bc, err
 
 
-def _inv3(c: np.ndarray) -> np.ndarray:
-    """Inverses of symmetric 3x3 matrices via the adjugate (no per-matrix LAPACK call)."""
-    a, b, cc, d, e, f = sym3(c)
-    A, B, C = d * f - e * e, cc * e - b * f, b * e - cc * d
-    D, E, F = a * f - cc * cc, b * cc - a * e, a * d - b * b
-    det = a * A + b * B + cc * C
-    return np.stack([np.stack([A, B, C], -1), np.stack([B, D, E], -1), np.stack([C, E, F], -1)], -2) / det[:, None,
-                                                                                                             None]
-
-
 def bc_gauss_mixture(mu1: np.ndarray, c1: np.ndarray, mu2: np.ndarray, mix: MixtureUncertainty,
                      rng: np.random.Generator, samples: int = 256) -> tuple[np.ndarray, np.ndarray]:
     """BC of a Gaussian N(μ₁, C₁) and a Gaussian mixture about μ₂, sampling the bound Σ √wₖ √(p Nₖ); 3·SE bound."""
@@ -220,9 +154,9 @@ def bc_gauss_mixture(mu1: np.ndarray, c1: np.ndarray, mu2: np.ndarray, mix: Mixt
         bck = np.zeros(nk)
         bck[live] = np.exp(-bd_gauss_gauss(a[live], ca[live], b[live], cb[live]))
         # √(N(a,A) N(b,B)) ∝ N(c, G) with G⁻¹ = (A⁻¹ + B⁻¹)/2
-        ia, ib = _inv3(np.where(live[:, None, None], ca, np.eye(3))), _inv3(np.where(live[:, None, None], cb,
+        ia, ib = inv3(np.where(live[:, None, None], ca, np.eye(3))), inv3(np.where(live[:, None, None], cb,
                                                                                       np.eye(3)))
-        g = _inv3(0.5 * (ia + ib))
+        g = inv3(0.5 * (ia + ib))
         c = np.einsum("nij,nj->ni", g, 0.5 * (np.einsum("nij,nj->ni", ia, a) + np.einsum("nij,nj->ni", ib, b)))
         pi = (np.sqrt(wk) * bck).reshape(len(i), k)
         z = pi.sum(axis=1)
@@ -235,7 +169,7 @@ def bc_gauss_mixture(mu1: np.ndarray, c1: np.ndarray, mu2: np.ndarray, mix: Mixt
         x = c[flat] + np.einsum("nsij,nsj->nsi", chol[flat], rng.standard_normal((len(i), samples, 3)))
         # log wₖ + log Nₖ(x) for every component; p cancels from the ratio √(p q) / (Z r)
         rel = x[:, None, :, :] - b.reshape(len(i), k, 1, 3)
-        icb = _inv3(cb).reshape(len(i), k, 3, 3)
+        icb = inv3(cb).reshape(len(i), k, 3, 3)
         maha = np.einsum("nksi,nkij,nksj->nks", rel, icb, rel)
         logdet = np.log(det3(cb)).reshape(len(i), k)
         with np.errstate(divide="ignore"):

@@ -8,7 +8,7 @@ from functools import cache
 
 import numpy as np
 
-from gdt_pipeline import Dataset
+from ..types import Dataset
 
 
 @cache

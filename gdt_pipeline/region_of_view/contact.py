@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from gdt_pipeline import Composite
-from gdt_pipeline.geometry import raycasting_scene
+from ..geometry import raycasting_scene
+from ..types import Composite
 
 
 def is_closed(faces: np.ndarray) -> bool:

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..types.arrays import covariance6
 from .window_kernel import window_sides
 
 NONE, HIDDEN, THROUGH, PRESENT = 0, 1, 2, 3  # what the stations together say of a sample
@@ -59,7 +60,7 @@ class DepthImage:
     starts: np.ndarray  # per occupied pixel, where its points start in ``points``
     counts: np.ndarray  # per occupied pixel, how many points it holds
     points: np.ndarray  # (N,3) sorted by pixel
-    cov6: np.ndarray  # (N,6) their covariances: xx, yy, zz, xy, xz, yz
+    cov6: np.ndarray  # (N,6) their covariances in the twin's order: xx, xy, xz, yy, yz, zz
     free_range: float
 
 
@@ -106,18 +107,6 @@ def ray_pitch(az: np.ndarray, el: np.ndarray) -> float:
     return max(float(np.sqrt(covered / len(az))), nearest)
 
 
-def along(cov: np.ndarray, unit: np.ndarray) -> np.ndarray:
-    """σ along each unit direction of each (3,3) covariance."""
-    return np.sqrt(np.maximum(np.einsum("ij,ijk,ik->i", unit, cov, unit), 0.0))
-
-
-def along6(cov6: np.ndarray, unit: np.ndarray) -> np.ndarray:
-    """Variance along each unit direction of each covariance held as (xx, yy, zz, xy, xz, yz)."""
-    x, y, z = unit.T
-    return (cov6[:, 0] * x * x + cov6[:, 1] * y * y + cov6[:, 2] * z * z
-            + 2 * (cov6[:, 3] * x * y + cov6[:, 4] * x * z + cov6[:, 5] * y * z))
-
-
 def build_image(station: Station, pts: np.ndarray, cov: np.ndarray, pixel_scale: float) -> DepthImage | None:
     """The station's depth image of its measured points with their (N,3,3) covariances (None without points)."""
     if len(pts) < 2:
@@ -128,10 +117,8 @@ def build_image(station: Station, pts: np.ndarray, cov: np.ndarray, pixel_scale:
     key = pixel_keys(az, el, pixel)
     order = np.argsort(key, kind="stable")
     keys, starts, counts = np.unique(key[order], return_index=True, return_counts=True)
-    c = cov[order]
-    cov6 = np.column_stack([c[:, 0, 0], c[:, 1, 1], c[:, 2, 2], c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]])
     return DepthImage(eye=station.eye, frame=frame, pixel=pixel, keys=keys, starts=starts, counts=counts,
-                      points=pts[order], cov6=cov6, free_range=station.free_range)
+                      points=pts[order], cov6=covariance6(cov[order]), free_range=station.free_range)
 
 
 def window_votes(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndarray | None, k: float,

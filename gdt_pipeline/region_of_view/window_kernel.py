@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from gdt_pipeline.compiled import njit, prange
+from ..compiled import njit, prange
 
 
 @njit(cache=True)
@@ -89,7 +89,7 @@ def window_sides(cell_keys, judged, pos, normals, tris, margin, var_e, eye, keys
                 offset = x * (points[j, 0] - pos[s, 0]) + y * (points[j, 1] - pos[s, 1]) + z * (points[j, 2]
                                                                                                 - pos[s, 2])
                 c = cov6[j]
-                var_p = c[0] * x * x + c[1] * y * y + c[2] * z * z + 2 * (c[3] * x * y + c[4] * x * z + c[5] * y * z)
+                var_p = c[0] * x * x + c[3] * y * y + c[5] * z * z + 2 * (c[1] * x * y + c[2] * x * z + c[4] * y * z)
                 tol = k * math.sqrt(var_p + var_e[s])
                 side = 0 if offset > tol else (2 if offset < -tol else 1)
                 side_counts[side, s] += 1

@@ -4,48 +4,14 @@ the sensors, and whether recent data, or a reference facet it confirmed, crosses
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
 from scipy.spatial import ConvexHull, cKDTree
 
-from gdt_pipeline import Dataset
-from gdt_pipeline.geometry import raycasting_scene
-
-
-class OcclusionParams(BaseModel):
-    """What both region-of-view stages share: occlusion by the Plane of Sight and matching."""
-
-    model_config = ConfigDict(extra="forbid")
-    occlusion: bool = Field(True, description="Remove elements hidden behind recent data (Plane of Sight).")
-    rule: Literal["odd", "any"] = Field("odd", description="Occluded when the sight ray crosses the recent data an "
-                                                           "odd number of times (the paper), or at all.")
-    offset: PositiveFloat | None = Field(None, description="The sight ray starts this far towards the POS, so the "
-                                                           "element's own measured surface is not counted (default: "
-                                                           "3 × the recent data's point spacing).")
-    match_distance: PositiveFloat | None = Field(None, description="Recent data within this distance of an element "
-                                                                   "matches it (default: 3 × the point spacing; "
-                                                                   "at least 3σ of the recent element).")
-    cull_back_faces: bool = Field(True, description="Reference facets facing away from every sensor are not in "
-                                                    "view (needs outward facet normals, as CAD solids have).")
-    viewpoints: list[list[float]] | None = Field(None, description="Sensor positions for the POS (default: those "
-                                                                   "the inputs carry).")
-    confirmed_occlude: bool = Field(True, description="Reference facets the recent data matches (confirmed present) "
-                                                      "hide what lies behind them too, seen from their front.")
-    sight: Literal["depth", "plane", "stations"] = Field(
-        "depth", description="depth: each station's depth image of its own measured points; an element's place is "
-                             "seen when measured surface lies at its depth (present) or clearly behind it (seen "
-                             "through: removed), hidden when it stands clearly in front; no surface reconstruction. "
-                             "plane: the sight ray runs to the Plane of Sight through all sensor positions and "
-                             "crosses a ball-pivoted surface of the recent points (the paper); stations: to each "
-                             "sensor whose own frustum holds the element, in view when any such ray is clear.")
-    k_sigma: PositiveFloat = Field(3.0, description="sight: depth: measured surface within k σ (the point's and the "
-                                                    "element's, along the ray) of an element's depth is at it.")
-    pixel_scale: PositiveFloat = Field(1.0, description="sight: depth: the depth image's pixel as a multiple of the "
-                                                        "angle between neighbouring rays.")
-    samples_per_facet: int = Field(64, ge=1, le=4096, description="sight: depth: the most samples a reference facet "
-                                                                  "is judged on (about one per point spacing²).")
+from ..geometry import raycasting_scene
+from ..types import Dataset
+from .params import SightParams
 
 
 def pos_closest(points: np.ndarray, viewpoints: np.ndarray) -> np.ndarray:
@@ -173,7 +139,7 @@ def hidden_from(pos: np.ndarray, target: np.ndarray, sight: Sight) -> np.ndarray
 
 
 def station_view(pos: np.ndarray, inside: np.ndarray, normal: np.ndarray | None, stations: list[Any],
-                 sight: Sight, p: OcclusionParams) -> np.ndarray:
+                 sight: Sight, p: SightParams) -> np.ndarray:
     """In view from at least one station: inside its own volume, facing it, with a clear sight ray to it. Stations
     are tried in turn on the elements none has seen yet (a loop over the few stations; elements are vectorised)."""
     view = np.zeros(len(pos), dtype=bool)
@@ -193,7 +159,7 @@ def station_view(pos: np.ndarray, inside: np.ndarray, normal: np.ndarray | None,
 
 
 def plane_view(pos: np.ndarray, inside: np.ndarray, normal: np.ndarray | None, vps: np.ndarray | None, sight: Sight,
-               p: OcclusionParams) -> tuple[np.ndarray, np.ndarray, int]:
+               p: SightParams) -> tuple[np.ndarray, np.ndarray, int]:
     """In view by the Plane of Sight: inside the volume, facing a sensor, with a clear sight ray to the closest point
     of the POS. Returns the view, the elements inside once back faces are culled, and how many are occluded."""
     if p.cull_back_faces and normal is not None and vps is not None:

@@ -3,17 +3,19 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gdt_pipeline import Composite, CompositeItem, Dataset, RegionOfView, StageContext
-from gdt_pipeline.geometry import raycasting_scene
-
-from ._depth import Station
-from ._depth_view import look_depth
-from ._occlusion import OcclusionParams, Sight, confirmed_facets, plane_view, station_view
+from ..geometry import raycasting_scene
+from ..plugins import StageContext
+from ..types import Composite, CompositeItem, Dataset, ItemView, RegionOfView
+from .depth import Station
+from .depth_view import look_depth
+from .occlusion import Sight, confirmed_facets, plane_view, station_view
+from .params import SightParams
 
 
 def point_spacing(points: np.ndarray) -> float:
@@ -41,7 +43,7 @@ def surface(ds: Dataset, spacing: float) -> tuple[np.ndarray, np.ndarray, str]:
         f"ball pivoting, radii {[round(r, 6) for r in radii]}"
 
 
-def _viewpoints(p: OcclusionParams, recent: list[Dataset]) -> np.ndarray | None:
+def _viewpoints(p: SightParams, recent: list[Dataset]) -> np.ndarray | None:
     """The sensor positions: the parameters', else those the recent data carries (None when neither has any)."""
     vps = np.asarray(p.viewpoints, dtype=np.float64) if p.viewpoints else (
         np.vstack([np.atleast_2d(ds.viewpoints) for ds in recent if ds.viewpoints is not None])
@@ -52,7 +54,7 @@ def _viewpoints(p: OcclusionParams, recent: list[Dataset]) -> np.ndarray | None:
     return vps
 
 
-def _stations(p: OcclusionParams, rov: RegionOfView, vps: np.ndarray | None, stations: list[Station] | None
+def _stations(p: SightParams, rov: RegionOfView, vps: np.ndarray | None, stations: list[Station] | None
               ) -> list[Station] | None:
     """The stations sight runs to under ``sight: stations`` (default: every sensor position, with the whole
     volume as its own); None under ``sight: plane``."""
@@ -66,7 +68,7 @@ def _stations(p: OcclusionParams, rov: RegionOfView, vps: np.ndarray | None, sta
     return stations
 
 
-def _recent_surfaces(p: OcclusionParams, recent: list[Dataset], spacing: float) -> tuple[Any, list[str]]:
+def _recent_surfaces(p: SightParams, recent: list[Dataset], spacing: float) -> tuple[Any, list[str]]:
     """The recent data as one ray-casting scene of triangles (None without occlusion or triangles), and how each
     dataset became triangles."""
     surfaces, how = [], []
@@ -112,11 +114,20 @@ def _matched(item: CompositeItem, pos: np.ndarray, inside: np.ndarray, normal: n
     return near
 
 
-Looked = tuple[CompositeItem, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]  # item, pos, inside, normal, near
+@dataclass(frozen=True)
+class ItemLook:
+    """One reference item as the volume holds it: its element positions, which lie inside the volume, its facet
+    normals (None for points) and which elements the recent data matches (confirms present)."""
+
+    item: CompositeItem
+    pos: np.ndarray
+    inside: np.ndarray
+    normal: np.ndarray | None
+    near: np.ndarray
 
 
 def _confirm(reference: Composite, rov: RegionOfView, rpts: np.ndarray, recent: list[Dataset], match: float
-             ) -> list[Looked]:
+             ) -> list[ItemLook]:
     """Per reference item: its element positions, which lie inside the volume, its facet normals and which
     elements the recent data matches (confirms present)."""
     tree = cKDTree(rpts) if len(rpts) else None
@@ -129,7 +140,7 @@ def _confirm(reference: Composite, rov: RegionOfView, rpts: np.ndarray, recent: 
         near = np.zeros(len(pos), dtype=bool)
         if tree is not None and inside.any():
             near = _matched(item, pos, inside, normal, tree, rpts, radius, sig)
-        looked.append((item, pos, inside, normal, near))
+        looked.append(ItemLook(item, pos, inside, normal, near))
     return looked
 
 
@@ -155,18 +166,19 @@ def look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list[
     looked = _confirm(reference, rov, rpts, recent, match)
     # reference facets the recent data confirms hide what lies behind them, seen from their front: the measured
     # surface of a thin part at grazing angles has holes where the CAD facet it confirms has none
-    confirmed = confirmed_facets([(it.dataset, nr) for it, _, _, nr_normal, nr in looked if nr_normal is not None]) \
+    confirmed = confirmed_facets([(lk.item.dataset, lk.near) for lk in looked if lk.normal is not None]) \
         if p.occlusion and p.confirmed_occlude else None
     sight = Sight(scene, point_tree, confirmed, offset, spacing, p.rule)
-    in_view, matched, counts = {}, {}, {"inside": 0, "occluded": 0, "in_view": 0, "unmatched_in_view": 0}
-    for item, pos, inside, normal, near in looked:
+    views, counts = {}, {"inside": 0, "occluded": 0, "in_view": 0, "unmatched_in_view": 0}
+    for lk in looked:
+        item, pos, inside, normal, near = lk.item, lk.pos, lk.inside, lk.normal, lk.near
         if p.sight == "stations":
             view = station_view(pos, inside, normal, stations, sight, p)
             counts["occluded"] += int((inside & ~view).sum())
         else:
             view, inside, n_hidden = plane_view(pos, inside, normal, vps, sight, p)
             counts["occluded"] += n_hidden
-        in_view[item.key], matched[item.key] = view, near & view
+        views[item.key] = ItemView(view, near & view)
         counts["inside"] += int(inside.sum())
         counts["in_view"] += int(view.sum())
         counts["unmatched_in_view"] += int((view & ~near).sum())
@@ -174,5 +186,4 @@ def look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list[
                                "match_distance": match, "rule": p.rule, **counts})
     ctx.log.info("region of view: %d reference elements inside, %d occluded, %d in view of which %d unmatched",
                  counts["inside"], counts["occluded"], counts["in_view"], counts["unmatched_in_view"])
-    return {"rov": RegionOfView(rov.vertices, rov.faces, rov.parts, in_view=in_view, matched=matched,
-                                method="; ".join(parts))}
+    return {"rov": RegionOfView(rov.vertices, rov.faces, rov.parts, views=views, method="; ".join(parts))}

@@ -10,12 +10,11 @@ from typing import Any
 
 import numpy as np
 
-from gdt_pipeline import Composite, Dataset, RegionOfView
-
-from ._contact import closed_parts, in_contact
-from ._depth import HIDDEN, NONE, PRESENT, THROUGH, DepthImage, Station, build_image, window_votes
-from ._occlusion import blocked_by_confirmed, confirmed_facets
-from ._samples import area_samples
+from ..types import Composite, Dataset, ItemView, RegionOfView
+from .contact import closed_parts, in_contact
+from .depth import HIDDEN, NONE, PRESENT, THROUGH, DepthImage, Station, build_image, window_votes
+from .occlusion import blocked_by_confirmed, confirmed_facets
+from .samples import area_samples
 
 MAX_SAMPLES = 4_000_000  # per reference item: beyond it, facets get fewer samples each
 SAMPLE_CHUNK = 500_000  # samples a station judges at once
@@ -23,12 +22,10 @@ SAMPLE_CHUNK = 500_000  # samples a station judges at once
 
 @dataclass
 class DepthView:
-    """Per reference item: in view, matched (confirmed present), and the shares of its area seen and removed."""
+    """Per reference item (by key) its view: in view, matched (confirmed present), and the shares of its area seen
+    and removed; and how many samples came out which way."""
 
-    in_view: dict[str, np.ndarray] = field(default_factory=dict)
-    matched: dict[str, np.ndarray] = field(default_factory=dict)
-    seen_fraction: dict[str, np.ndarray] = field(default_factory=dict)
-    removed_fraction: dict[str, np.ndarray] = field(default_factory=dict)
+    views: dict[str, ItemView] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=lambda: {"samples": 0, "present": 0, "through": 0,
                                                             "hidden_or_no_points": 0, "unseen": 0})
 
@@ -55,7 +52,7 @@ def depth_images(stations: list[Station], recent: list[Dataset], pixel_scale: fl
 
 
 @dataclass
-class Looked:
+class SampleStates:
     """One reference item's samples: positions, owning elements, states, and per station which samples it saw
     through."""
 
@@ -66,7 +63,7 @@ class Looked:
 
 
 def sample_states(ds: Dataset, visible: np.ndarray, inside: np.ndarray, pos: np.ndarray, owner: np.ndarray,
-                  stations: list[Station], images: list[DepthImage | None], p: Any) -> Looked:
+                  stations: list[Station], images: list[DepthImage | None], p: Any) -> SampleStates:
     """The state of each sample from the votes of every station that could see it, summed (a near station's
     many points outweigh a far one's few): present where at least as many points lie at it as behind it, seen
     through where more lie behind; HIDDEN where stations looked but had surface in front of it or no points at it;
@@ -97,10 +94,10 @@ def sample_states(ds: Dataset, visible: np.ndarray, inside: np.ndarray, pos: np.
     at, behind = votes
     state = np.where((at > 0) & (at >= behind), PRESENT, np.where(behind > at, THROUGH,
                                                                   np.where(looked_at, HIDDEN, NONE)))
-    return Looked(pos, owner, state.astype(np.int8), through)
+    return SampleStates(pos, owner, state.astype(np.int8), through)
 
 
-def unblock(looked: Looked, stations: list[Station], confirmed: Any, start: float) -> None:
+def unblock(looked: SampleStates, stations: list[Station], confirmed: Any, start: float) -> None:
     """Samples seen through only along sight lines that a reference facet confirmed present crosses from its
     front become hidden: a CAD face inside another part (a web's face under its flange) is never seen, though the
     measured surface around the covering part's edge lies behind it."""
@@ -118,14 +115,14 @@ def unblock(looked: Looked, stations: list[Station], confirmed: Any, start: floa
     looked.state[through & ~clear] = HIDDEN
 
 
-def element_shares(looked: Looked, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def element_shares(looked: SampleStates, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per element: its number of samples, and how many were present and seen through."""
     per = np.bincount(looked.owner, minlength=n).astype(np.float64)
     present = np.bincount(looked.owner, weights=looked.state == PRESENT, minlength=n)
     return per, present, np.bincount(looked.owner, weights=looked.state == THROUGH, minlength=n)
 
 
-def matched(looked: Looked, n: int) -> np.ndarray:
+def matched(looked: SampleStates, n: int) -> np.ndarray:
     """The elements confirmed present: seen, and found present on at least as many samples as seen through."""
     _, present, through = element_shares(looked, n)
     return (present > 0) & (present >= through)
@@ -164,10 +161,8 @@ def depth_view(reference: Composite, rov: RegionOfView, recent: list[Dataset], s
     for item, lk in zip(reference.items, looks, strict=True):
         per, present, through = element_shares(lk, item.dataset.n_elements)
         seen = present + through
-        out.in_view[item.key] = seen > 0
-        out.matched[item.key] = matched(lk, item.dataset.n_elements)
-        out.seen_fraction[item.key] = seen / np.maximum(per, 1)
-        out.removed_fraction[item.key] = through / np.maximum(per, 1)
+        out.views[item.key] = ItemView(seen > 0, matched(lk, item.dataset.n_elements), seen / np.maximum(per, 1),
+                                       through / np.maximum(per, 1))
         for name, code in (("present", PRESENT), ("through", THROUGH), ("hidden_or_no_points", HIDDEN),
                            ("unseen", NONE)):
             out.counts[name] += int(np.sum(lk.state == code))
@@ -210,8 +205,8 @@ def look_depth(ctx: Any, rov: RegionOfView, parts: list[str], stations: list[Sta
     reference: Composite = ctx.get("reference") or Composite()
     stations = default_stations(p, recent, rov) if p.viewpoints or not stations else stations
     view = depth_view(reference, rov, recent, stations, spacing, p)
-    elements = {"in_view": sum(int(v.sum()) for v in view.in_view.values()),
-                "unmatched_in_view": sum(int((v & ~view.matched[k]).sum()) for k, v in view.in_view.items())}
+    elements = {"in_view": sum(int(v.in_view.sum()) for v in view.views.values()),
+                "unmatched_in_view": sum(int((v.in_view & ~v.matched).sum()) for v in view.views.values())}
     ctx.report(region_of_view={"parts": parts, "sight": "depth", "stations": len(stations), "k_sigma": p.k_sigma,
                                "spacing": spacing, "samples": view.counts, **elements})
     ctx.log.info("region of view (depth images, %d stations): %d samples: %d present, %d seen through, %d hidden "
@@ -219,6 +214,5 @@ def look_depth(ctx: Any, rov: RegionOfView, parts: list[str], stations: list[Sta
                  len(stations), view.counts["samples"], view.counts["present"], view.counts["through"],
                  view.counts["hidden_or_no_points"], view.counts["unseen"],
                  elements["in_view"], elements["unmatched_in_view"])
-    return {"rov": RegionOfView(rov.vertices, rov.faces, rov.parts, in_view=view.in_view, matched=view.matched,
-                                method="; ".join(parts) + "; depth images", seen_fraction=view.seen_fraction,
-                                removed_fraction=view.removed_fraction)}
+    return {"rov": RegionOfView(rov.vertices, rov.faces, rov.parts, views=view.views,
+                                method="; ".join(parts) + "; depth images")}

@@ -12,6 +12,7 @@ from .plugins import (
     StageContext,
     StageSpec,
     TileExecutor,
+    family_stage,
     hookimpl,
     hookspec,
 )
@@ -77,6 +78,7 @@ __all__ = [
     "Uncertainty",
     "WorkflowError",
     "__version__",
+    "family_stage",
     "hookimpl",
     "hookspec",
 ]

@@ -7,36 +7,57 @@ ones use:
 - ``lowest_per_element``: per element, the lowest candidate score ("the candidate with the lower change score wins");
 - ``null_simulator``: scores of unchanged pairs drawn from the actual uncertainty models (``Scores.simulate``, what
   the ``calibrated_threshold`` stage needs);
-- ``run_pair_measure`` and ``distance_stage``: turn a pair function into a distance stage;
-- ``attach_null_simulators``: the simulators again over the whole epoch, after a tiled run (a stage's ``finish``);
+- ``distance_stage``: the distance stage around a pair function, for every measure (built-in and plugins alike): it
+  runs tile by tile, takes the stage's ε_T (``tolerance``), lets a measure add to the groups first (``prepare``,
+  e.g. local normals) and report what it counted (``summary``); ``run_pair_measure`` is its run and
+  ``attach_null_simulators`` its ``finish`` (the simulators again over the whole epoch, after a tiled run);
 - ``euclidean``: the plain (cloud-to-cloud) distance as a pair function;
 - ``reference_cloud``: the composite so far as one point cloud, for measures that compare clouds rather than pairs.
 
 A pair function (``PairMeasure``) takes a ``PairGroup`` and the stage's generator and returns, per pair, the score,
-the p-value (or None) and an integration error bound (an empty array when the score is exact).
+the p-value (or None) and an integration error bound (an empty array when the score is exact), as a ``Measured``
+(which may also carry counts of what it did, summed over the stage's groups) or a plain 3-tuple.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+import functools
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from types import MappingProxyType
+from typing import Any, NamedTuple
 
 import numpy as np
 from pydantic import BaseModel
 
 from .compiled import njit
 from .geometry import sample_surface
-from .plugins import StageContext, StageSpec
+from .plugins import FAMILY_SLOTS, StageContext, StageSpec, family_stage
 from .types import Composite, Correspondences, Dataset, Scores
 
-MeasureResult = tuple[np.ndarray, np.ndarray | None, np.ndarray]
+Counts = dict[str, dict[str, int]]
+
+
+class Measured(NamedTuple):
+    """What a pair function returns for a group: per pair the score, the p-value (None when the measure has none) and
+    an integration error bound (empty when exact); ``counts`` of what it did (e.g. pairs per method or per
+    integration path), which the stage sums over its groups and hands to its ``summary``."""
+
+    score: np.ndarray
+    p_value: np.ndarray | None
+    error: np.ndarray
+    counts: Mapping[str, Mapping[str, int]] = MappingProxyType({})
+
+
+MeasureResult = Measured | tuple[np.ndarray, np.ndarray | None, np.ndarray]
 PairMeasure = Callable[["PairGroup", np.random.Generator], MeasureResult]
 ParamsMeasure = Callable[["PairGroup", np.random.Generator, Any], MeasureResult]
 Prepare = Callable[[list["PairGroup"], int], list["PairGroup"]]
+StagePrepare = Callable[[StageContext, list["PairGroup"], int], list["PairGroup"]]
+Summary = Callable[[Counts], dict[str, Any]]
 NullSimulator = Callable[[np.random.Generator, int], np.ndarray]
-DISTANCE_REQUIRES = ("recent", "reference", "correspondences")
+DISTANCE_REQUIRES = FAMILY_SLOTS["distance"][0]
 
 
 @dataclass(frozen=True)
@@ -178,10 +199,18 @@ def null_simulator(groups: list[PairGroup] | list[PairSource], measure: PairMeas
     return simulate
 
 
+def _add_counts(total: Counts, counts: Mapping[str, Mapping[str, int]]) -> None:
+    for kind, values in counts.items():
+        into = total.setdefault(kind, {})
+        for key, n in values.items():
+            into[key] = into.get(key, 0) + int(n)
+
+
 def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: PairMeasure,
-                  prepare: Prepare | None = None) -> tuple[Scores, float]:
+                  prepare: Prepare | None = None, counts: Counts | None = None) -> tuple[Scores, float]:
     """The ``Scores`` of one recent dataset (lowest candidate per element, null simulator attached) and the largest
-    integration error of its pairs; ``Scores.tolerance`` is left for the caller."""
+    integration error of its pairs; ``Scores.tolerance`` is left for the caller. What the measure counted is added to
+    ``counts``."""
     ds = ctx["recent"][corr.query]
     m = len(corr.ref_item)
     cand_score = np.full(m, np.nan)
@@ -193,7 +222,10 @@ def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: 
         groups = sources = prepare([src.whole() for src in sources], corr.query)
     for src in groups:
         g = src.whole() if isinstance(src, PairSource) else src  # one group's copies at a time
-        s, p, err = measure(g, ctx.rng)
+        result = measure(g, ctx.rng)
+        s, p, err = result[0], result[1], result[2]
+        if counts is not None and len(result) > 3:
+            _add_counts(counts, result[3])  # type: ignore[misc]
         cand_score[g.idx] = s
         if p is not None:
             if cand_p is None:
@@ -210,21 +242,27 @@ def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: 
 
 
 def run_pair_measure(ctx: StageContext, name: str, measure: PairMeasure, tolerance: float | None = None,
-                     prepare: Prepare | None = None) -> dict[str, Any]:
+                     prepare: Prepare | None = None, summary: Summary | None = None) -> dict[str, Any]:
     """A distance stage's whole run: every candidate pair scored by ``measure``, the lowest per element kept.
 
     ``tolerance`` (ε_T) is reported with each ``Scores`` (raised to the largest integration error met so far);
-    ``prepare(groups, query)`` may add to the pair groups of a recent dataset (e.g. local normals) first.
+    ``prepare(groups, query)`` may add to the pair groups of a recent dataset (e.g. local normals) first; what the
+    measure counted is reported through ``summary(counts)`` (as it is without one).
     """
     out = []
     worst = 0.0
+    counts: Counts = {}
     with ctx.progress.task(f"{name} scores", total=len(ctx["correspondences"])) as advance:
         for corr in ctx["correspondences"]:
-            scores, err = score_dataset(ctx, corr, name, measure, prepare)
+            scores, err = score_dataset(ctx, corr, name, measure, prepare, counts)
             worst = max(worst, err)
             out.append(dataclasses.replace(scores, tolerance=None if tolerance is None else max(tolerance, worst)))
             advance()
     ctx.report(max_integration_error=worst, tolerance=tolerance)
+    if summary is not None:
+        ctx.report(**summary(counts))
+    elif counts:
+        ctx.report(counts=counts)
     return {"scores": out}
 
 
@@ -243,19 +281,31 @@ def attach_null_simulators(ctx: StageContext, measure: PairMeasure, prepare: Pre
 
 
 def distance_stage(*, name: str, measure: ParamsMeasure, params: type[BaseModel], version: str,
-                   description: str = "") -> StageSpec:
+                   description: str = "", tolerance: Callable[[Any], float] | None = None,
+                   prepare: StagePrepare | None = None, summary: Summary | None = None) -> StageSpec:
     """A distance stage from a pair function ``measure(group, rng, params)``; ``params`` is the validated model. It
-    runs tile by tile (a pair's score depends on the pair only)."""
+    runs tile by tile (a pair's score depends on the pair only; a ``prepare`` that reads neighbourhoods declares
+    them with ``ctx.neighbourhoods``) and rebuilds the null simulators over the whole epoch after a tiled run.
+
+    ``tolerance(params)``: the ε_T the scores carry; ``prepare(ctx, groups, query)``: the pair groups of a recent
+    dataset with more in them (e.g. local normals), for scoring and simulation alike; ``summary(counts)``: the
+    report of what the measure counted (``Measured.counts`` summed over the stage's groups)."""
+
+    def pairs(ctx: StageContext) -> PairMeasure:
+        return lambda g, rng: measure(g, rng, ctx.params)
+
+    def prepared(ctx: StageContext) -> Prepare | None:
+        return None if prepare is None else functools.partial(prepare, ctx)
 
     def run(ctx: StageContext) -> dict[str, Any]:
-        return run_pair_measure(ctx, name, lambda g, rng: measure(g, rng, ctx.params))
+        return run_pair_measure(ctx, name, pairs(ctx), None if tolerance is None else tolerance(ctx.params),
+                                prepared(ctx), summary)
 
     def finish(ctx: StageContext) -> dict[str, Any]:
-        return attach_null_simulators(ctx, lambda g, rng: measure(g, rng, ctx.params))
+        return attach_null_simulators(ctx, pairs(ctx), prepared(ctx))
 
-    return StageSpec(name=name, family="distance", version=version, params=params, run=run,
-                     requires=DISTANCE_REQUIRES, provides=("scores",), description=description, tiling="tile",
-                     finish=finish)
+    return family_stage("distance", name=name, version=version, params=params, run=run, description=description,
+                        tiling="tile", finish=finish)
 
 
 def euclidean(group: PairGroup, rng: np.random.Generator, scale: float = 1.0) -> MeasureResult:

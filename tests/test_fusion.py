@@ -150,7 +150,7 @@ def test_each_element_records_why_it_is_in_the_composite_and_the_twin_keeps_it(r
     from pxr import Usd, UsdGeom
 
     from gdt_pipeline import FusionReason
-    from gdt_pipeline.twin import composite_to_elements
+    from gdt_pipeline.twin_elements import composite_to_elements
     from twin_store import REASON_NAMES, TwinStore
 
     reference, precise, change = scene

@@ -48,7 +48,7 @@ def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
     identified parts (IFC elements by GlobalId, named CAD parts) an epoch found removed."""
     from twin_store import TwinStore
 
-    from ..twin import identified_changes, identity_label
+    from ..twin_elements import identified_changes, identity_label
 
     store = TwinStore.open(twin)
     records = store.history()  # every layer is checked against its recorded sha256 before it is read

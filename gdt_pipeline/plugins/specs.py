@@ -166,6 +166,38 @@ class StageSpec:
     entry_point: str = ""
 
 
+# The slots a stage of each family reads and writes unless it says otherwise (``family_stage``).
+FAMILY_SLOTS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "registrar": (("recent", "reference"), ("recent", "registration")),
+    "uncertainty": (("recent",), ("recent",)),
+    "rov": (("recent",), ("rov",)),
+    "correspondence": (("recent", "reference"), ("correspondences",)),
+    "distance": (("recent", "reference", "correspondences"), ("scores",)),
+    "threshold": (("scores",), ("change",)),
+    "fusion": (("recent",), ("composite",)),
+}
+Run = Callable[[StageContext], Mapping[str, Any]]
+
+
+def family_stage(family: Family, *, name: str, version: str, params: type[BaseModel], run: Run,
+                 description: str = "", requires: tuple[str, ...] | None = None,
+                 provides: tuple[str, ...] | None = None, optional: tuple[str, ...] = (),
+                 check: Callable[[frozenset[str]], str | None] | None = None,
+                 validate: Callable[[Any, Path], Sequence[tuple[str, str]]] | None = None,
+                 tiling: Literal["epoch", "tile"] = "epoch",
+                 reach: Callable[[Any, Mapping[str, Any]], float] | None = None,
+                 survey: Callable[[Any, Mapping[str, Any]], Mapping[str, Any]] | None = None,
+                 finish: Callable[[StageContext], Mapping[str, Any]] | None = None) -> StageSpec:
+    """A stage of ``family`` that reads and writes the family's usual slots (``FAMILY_SLOTS``; ``requires`` and
+    ``provides`` say otherwise where it differs): what a stage module declares of itself, one call per stage."""
+    usual_requires, usual_provides = FAMILY_SLOTS[family]
+    return StageSpec(name=name, family=family, version=version, params=params, run=run,
+                     requires=usual_requires if requires is None else requires,
+                     provides=usual_provides if provides is None else provides, optional=optional,
+                     description=description, check=check, validate=validate, tiling=tiling, reach=reach,
+                     survey=survey, finish=finish)
+
+
 @dataclass(frozen=True)
 class ReadRequest:
     """What a reader is asked to read: one input of an epoch, with the reader's validated params."""

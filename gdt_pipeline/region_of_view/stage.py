@@ -7,7 +7,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from ..plugins import StageContext, StageSpec
+from ..plugins import StageContext, StageSpec, family_stage
 from ..types import RegionOfView
 from .depth import Station
 from .look import look
@@ -41,5 +41,5 @@ def rov_stage(*, name: str, build: Build, params: type[SightParams], version: st
         stations = None if volume.stations is None else list(volume.stations)
         return look(ctx, volume.region, list(volume.parts), stations)
 
-    return StageSpec(name=name, family="rov", version=version, params=params, run=run, requires=("recent",),
-                     optional=("reference",), provides=("rov",), description=description)
+    return family_stage("rov", name=name, version=version, params=params, run=run, optional=("reference",),
+                        description=description)

@@ -44,7 +44,7 @@ from ..provenance import (
     package_versions,
 )
 from ..tiling.grid import extent
-from ..twin import composite_to_elements
+from ..twin_elements import composite_to_elements
 from ..types import Composite, Dataset, EpochInfo, Registration
 from ..workflow import load_workflow
 from .inputs import input_digests, read_input, relative_to_workflow

@@ -21,12 +21,11 @@ from __future__ import annotations
 
 from gdt_pipeline import StageSpec, hookimpl
 
-from ._compose import chain_check
-from ._fitting import part_problems
+from . import keep_unchanged, most_reliable, replace_in_view
 from ._segments import PartParams, SegmentParams
-from .keep_unchanged import KeepUnchangedParams, keep_unchanged
-from .most_reliable import MostReliableParams, most_reliable
-from .replace_in_view import ReplaceInViewParams, replace_in_view
+from .keep_unchanged import KeepUnchangedParams
+from .most_reliable import MostReliableParams
+from .replace_in_view import ReplaceInViewParams
 
 __all__ = ["KeepUnchangedParams", "MostReliableParams", "PartParams", "ReplaceInViewParams", "SegmentParams",
            "gdt_stages"]
@@ -35,17 +34,4 @@ __all__ = ["KeepUnchangedParams", "MostReliableParams", "PartParams", "ReplaceIn
 @hookimpl
 def gdt_stages() -> list[StageSpec]:
     """The built-in fusions."""
-    common = {"family": "fusion", "version": "1.2.0", "requires": ("recent",),
-              "optional": ("reference", "change", "rov"), "provides": ("composite",), "validate": part_problems}
-    keep = "Known data stays; changed new elements come in; unchanged new ones are hidden."
-    return [StageSpec(name="keep_unchanged", params=KeepUnchangedParams, run=keep_unchanged, description=keep,
-                      check=chain_check("keep_unchanged", False), **common),
-            StageSpec(name="keep_reference", params=KeepUnchangedParams, run=keep_unchanged,
-                      description=keep + " (the same as keep_unchanged)", check=chain_check("keep_reference", False),
-                      **common),
-            StageSpec(name="most_reliable", params=MostReliableParams, run=most_reliable,
-                      description="As keep_unchanged, but more precise new data replaces measured data in view.",
-                      check=chain_check("most_reliable", True), **common),
-            StageSpec(name="replace_in_view", params=ReplaceInViewParams, run=replace_in_view,
-                      description="The newest data replaces what it images inside the region of view.",
-                      check=chain_check("replace_in_view", True), **common)]
+    return [keep_unchanged.KEEP_UNCHANGED, keep_unchanged.KEEP_REFERENCE, most_reliable.SPEC, replace_in_view.SPEC]

@@ -18,12 +18,24 @@ from gdt_pipeline import (
     RegionOfView,
     Segment,
     StageContext,
+    StageSpec,
+    family_stage,
 )
 
-from ._fitting import fit_parts
+from ._fitting import fit_parts, part_problems
 from ._moved import moved
 from ._replace import Decision, replacements
-from ._segments import segments
+from ._segments import SegmentParams, segments
+
+
+def fusion_stage(name: str, params: type[SegmentParams], run: Callable[[StageContext], dict[str, Any]],
+                 description: str, needs_rov: bool) -> StageSpec:
+    """A fusion stage: it reads the recent data and, when there are, the reference, the change and the region of
+    view; its catalogue parts are checked before a run, and ``needs_rov`` says whether its rule replaces elements
+    in view (then a region of view must come first)."""
+    return family_stage("fusion", name=name, version="1.2.0", params=params, run=run, description=description,
+                        optional=("reference", "change", "rov"), validate=part_problems,
+                        check=chain_check(name, needs_rov))
 
 
 def chain_check(name: str, needs_rov: bool) -> Callable[[frozenset[str]], str | None]:

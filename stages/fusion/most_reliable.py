@@ -8,7 +8,7 @@ from pydantic import Field
 
 from gdt_pipeline import StageContext
 
-from ._compose import fuse
+from ._compose import fuse, fusion_stage
 from ._segments import SegmentParams
 
 
@@ -24,3 +24,7 @@ class MostReliableParams(SegmentParams):
 def most_reliable(ctx: StageContext) -> dict[str, Any]:
     """Unchanged new data with a smaller √det Σ replaces the measured known data it images in view."""
     return fuse(ctx, "most_reliable")
+
+
+SPEC = fusion_stage("most_reliable", MostReliableParams, most_reliable,
+                    "As keep_unchanged, but more precise new data replaces measured data in view.", needs_rov=True)

@@ -6,7 +6,7 @@ from typing import Any
 
 from gdt_pipeline import StageContext
 
-from ._compose import fuse
+from ._compose import fuse, fusion_stage
 from ._segments import SegmentParams
 
 
@@ -17,3 +17,7 @@ class ReplaceInViewParams(SegmentParams):
 def replace_in_view(ctx: StageContext) -> dict[str, Any]:
     """The newest data replaces the known data it images inside the region of view."""
     return fuse(ctx, "replace_in_view")
+
+
+SPEC = fusion_stage("replace_in_view", ReplaceInViewParams, replace_in_view,
+                    "The newest data replaces what it images inside the region of view.", needs_rov=True)

@@ -28,10 +28,10 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from gdt_pipeline import Dataset, InputError, ReadRequest
+from gdt_pipeline import Dataset, InputError, ReaderSpec, ReadRequest
 
 from .mesh import check_triangles, drop_degenerate, merged_mesh
-from .spf import check_spf
+from .step_file import check_spf
 
 log = logging.getLogger(__name__)
 
@@ -325,3 +325,13 @@ def read_cad(req: ReadRequest) -> list[Dataset] | Dataset:
         return merged_mesh(req, [(p.vertices, p.faces) for p in parts], {**meta, "parts": str(len(parts))})
     return [Dataset(name=p.name, role=req.role, points=p.vertices, faces=p.faces,
                     meta={"name": p.name, "instance": p.instance, **meta}) for p in parts]
+
+
+
+
+
+READER = ReaderSpec(name="cascadio_cad", version=CAD_VERSION, params=CadParams, read=read_cad, accepts=accepts_cad,
+                    extensions=(".step", ".stp", ".igs", ".iges"),
+                    description="STEP/IGES B-rep CAD through cascadio (OpenCASCADE), tessellated to `tolerance` "
+                                "metres: one mesh per top-level part named by its product (IGES: one mesh), in "
+                                "metres whatever the file's unit.")

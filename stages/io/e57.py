@@ -17,7 +17,9 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from gdt_pipeline import Dataset, InputError, ReadRequest, SensorPose
+from gdt_pipeline import Dataset, InputError, ReaderSpec, ReadRequest, SensorPose
+
+from .version import VERSION
 
 
 class E57Params(BaseModel):
@@ -117,3 +119,11 @@ def read_e57(req: ReadRequest) -> list[Dataset]:
     req.report(units="m", scans=len(parts), points=[len(p.points) for p in parts],
                poses=sum(p.pose is not None for p in parts))
     return parts
+
+
+
+
+
+READER = ReaderSpec(name="pye57_scans", version=VERSION, params=E57Params, read=read_e57, extensions=(".e57",),
+                    description="E57 scans through pye57: one dataset per scan, its station from the header, "
+                                "intensity and colour.")

@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from gdt_pipeline import Dataset, InputError, ReadRequest
+from gdt_pipeline import Dataset, InputError, ReaderSpec, ReadRequest
 
 from .mesh import degenerate_mask, merged_mesh
-from .spf import check_spf
+from .step_file import check_spf
 
 log = logging.getLogger(__name__)
 
@@ -161,3 +161,11 @@ def read_ifc(req: ReadRequest) -> list[Dataset] | Dataset:
         return merged_mesh(req, [(ds.points, ds.faces) for ds in parts],
                            {"ifc_file_schema": model.schema, "products": str(len(parts))})
     return parts
+
+
+
+
+
+READER = ReaderSpec(name="ifcopenshell_ifc", version=IFC_VERSION, params=IfcParams, read=read_ifc,
+                    extensions=(".ifc",),
+                    description="IFC models through IfcOpenShell: one mesh per product, GlobalId and class kept.")

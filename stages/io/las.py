@@ -6,11 +6,14 @@ from __future__ import annotations
 
 import struct
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
-from gdt_pipeline import InputError
+from gdt_pipeline import Dataset, InputError, ReaderSpec, ReadRequest
+
+from .version import VERSION
 
 # LAZ compresses point records about 5-10×; more than this many records per file byte cannot be real.
 LAZ_MAX_RATIO = 64
@@ -201,3 +204,24 @@ def read_las(path: Path, classes: list[int] | None, attributes: tuple[str, ...] 
     if read != count:
         raise InputError(f"{path}: the LAS header declares {count} points, laspy read {read}")
     return pts[:filled], {name: np.concatenate(parts) for name, parts in fields.items()}
+
+
+class LasParams(BaseModel):
+    """Parameters of the laspy LAS/LAZ reader."""
+
+    model_config = ConfigDict(extra="forbid")
+    classes: list[int] | None = Field(None, description="Keep only points of these ASPRS classes (e.g. [2] ground).")
+    attributes: list[Literal["intensity", "color"]] = Field(
+        ["intensity", "color"], description="Per-point values to carry into the twin when the file has them "
+                                            "(gdt:intensity, gdt:scanColor); [] for coordinates only.")
+
+
+def _read_las(req: ReadRequest) -> Dataset:
+    pts, fields = read_las(req.path, req.params.classes, tuple(req.params.attributes))
+    if len(pts) == 0:
+        raise InputError(f"{req.path}: no points (after the class filter {req.params.classes})")
+    return Dataset(name=req.name, role=req.role, points=pts, fields=fields)
+
+
+READER = ReaderSpec(name="laspy_points", version=VERSION, params=LasParams, read=_read_las, extensions=(".las", ".laz"),
+                    description="LAS/LAZ LiDAR point clouds through laspy (lazrs backend).")

@@ -12,12 +12,15 @@ import struct
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
-from gdt_pipeline import Dataset, InputError, ReadRequest
+from gdt_pipeline import Dataset, InputError, ReaderSpec, ReadRequest
 from gdt_pipeline.geometry import triangle_normals
 
 from .ply import read_ply
+from .ply_header import face_count
 from .text import nonfinite
+from .version import VERSION
 
 log = logging.getLogger(__name__)
 # Relative to its longest edge squared, a facet's doubled area below this is zero in float64 arithmetic.
@@ -192,3 +195,24 @@ def read_mesh(req: ReadRequest) -> Dataset:
     if dropped:
         req.report(degenerate_facets_dropped=dropped)
     return Dataset(name=req.name, role=req.role, points=vertices, faces=faces)
+
+
+class MeshParams(BaseModel):
+    """Parameters of the trimesh mesh reader."""
+
+    model_config = ConfigDict(extra="forbid")
+    process: bool = Field(False, description="Let trimesh merge duplicate vertices and drop degenerate faces "
+                                             "(changes element order: off by default so facets stay traceable).")
+
+
+def _accepts_mesh(path: Path, kind: str | None) -> bool:
+    if kind == "points":
+        return False
+    if path.suffix.lower() == ".ply" and kind is None:
+        return (face_count(path) or 0) > 0
+    return True
+
+
+READER = ReaderSpec(name="trimesh_mesh", version=VERSION, params=MeshParams, read=read_mesh, accepts=_accepts_mesh,
+                    extensions=(".obj", ".ply", ".stl", ".off", ".glb", ".gltf"),
+                    description="Triangle meshes through trimesh (faces are the elements).")

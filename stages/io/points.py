@@ -8,11 +8,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict
 
-from gdt_pipeline import InputError
+from gdt_pipeline import Dataset, InputError, ReaderSpec, ReadRequest
 
 from .ply import read_ply
+from .ply_header import face_count
 from .text import Rows, check_finite, check_integral, table
+from .version import VERSION
 
 # Columns of the XYZ family (Open3D reads the first three as the coordinates).
 TEXT_COLUMNS = {".xyz": 3, ".xyzn": 6, ".xyzrgb": 6}
@@ -161,3 +164,27 @@ def read_point_file(path: Path) -> np.ndarray:
     if ext == ".pts":
         return read_pts(path)
     return read_open3d(path, check_pcd(path) if ext == ".pcd" else None)
+
+
+class PointsParams(BaseModel):
+    """Parameters of the Open3D point-cloud reader."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+def _accepts_points(path: Path, kind: str | None) -> bool:
+    if kind == "mesh":
+        return False
+    if path.suffix.lower() == ".ply" and kind is None:
+        # An unreadable header (None) is taken too, so that the error names what is wrong with it.
+        return face_count(path) in (0, None)
+    return True
+
+
+def _read_points(req: ReadRequest) -> Dataset:
+    return Dataset(name=req.name, role=req.role, points=read_point_file(req.path))
+
+
+READER = ReaderSpec(name="open3d_points", version=VERSION, params=PointsParams, read=_read_points,
+                    accepts=_accepts_points, extensions=(".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts"),
+                    description="Point clouds: PLY and XYZ/XYZN/XYZRGB/PTS read and checked here, PCD through Open3D.")

@@ -7,7 +7,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt
 
-from gdt_pipeline import StageContext
+from gdt_pipeline import StageContext, family_stage
 
 from ._icp import ScheduleParams, icp_schedule, registration_inputs, registration_result, to_pcd
 
@@ -46,3 +46,7 @@ def coarse(ctx: StageContext) -> dict[str, Any]:
     ctx.report(ransac_fitness=float(res.fitness), ransac_rmse=float(res.inlier_rmse))
     t_local, fitness, rmse, dist = icp_schedule(src, tgt, p, p.refine, np.asarray(res.transformation), origin)
     return registration_result(ctx, src, tgt, t_local, origin, fitness, rmse, dist, f"coarse+{p.refine}")
+
+
+SPEC = family_stage("registrar", name="coarse", version="1.0.0", params=CoarseParams, run=coarse,
+                    description="FPFH + RANSAC global alignment refined by ICP, for data that starts far off.")

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from gdt_pipeline import Registration, StageContext
+from gdt_pipeline import Registration, StageContext, family_stage
 
 from ._icp import check_rigid
 
@@ -77,3 +77,8 @@ def given(ctx: StageContext) -> dict[str, Any]:
     else:
         t = np.asarray(p.transform, dtype=np.float64)
     return {"recent": [d.transformed(t) for d in ctx["recent"]], "registration": Registration(t, method="given")}
+
+
+SPEC = family_stage("registrar", name="given", version="1.0.0", params=GivenParams, run=given,
+                    validate=matrix_problems, requires=("recent",),
+                    description="Apply a known 4x4 transform (inline or from a file).")

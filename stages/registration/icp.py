@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from gdt_pipeline import StageContext
+from gdt_pipeline import StageContext, family_stage
 
 from ._icp import ScheduleParams, icp_schedule, registration_inputs, registration_result, shifted
 
@@ -40,3 +40,10 @@ def gicp(ctx: StageContext) -> dict[str, Any]:
 def point_to_plane(ctx: StageContext) -> dict[str, Any]:
     """Point-to-plane ICP to the twin's geometry."""
     return icp(ctx, "point_to_plane")
+
+
+GICP = family_stage("registrar", name="gicp", version="1.0.0", params=GicpParams, run=gicp,
+                    description="Generalized-ICP to the twin's geometry, coarse to fine (Open3D).")
+POINT_TO_PLANE = family_stage("registrar", name="point_to_plane", version="1.0.0", params=PointToPlaneParams,
+                              run=point_to_plane,
+                              description="Point-to-plane ICP to the twin's geometry, coarse to fine (Open3D).")

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from gdt_pipeline import Registration, StageContext
+from gdt_pipeline import Registration, StageContext, family_stage
 
 
 class IdentityParams(BaseModel):
@@ -19,3 +19,7 @@ class IdentityParams(BaseModel):
 def identity(ctx: StageContext) -> dict[str, Any]:
     """The recent data where it is, with the identity transform."""
     return {"recent": list(ctx["recent"]), "registration": Registration(np.eye(4), method="identity")}
+
+
+SPEC = family_stage("registrar", name="identity", version="1.0.0", params=IdentityParams, run=identity,
+                    requires=("recent",), description="Keep the recent data where it is (pre-registered input).")

@@ -9,7 +9,7 @@ import numpy as np
 from pydantic import Field, PositiveFloat
 from scipy.spatial import cKDTree
 
-from gdt_pipeline import StageContext
+from gdt_pipeline import StageContext, family_stage
 
 from ._icp import ScheduleParams, icp_schedule, registration_inputs, registration_result, shifted
 
@@ -54,3 +54,7 @@ def stable_areas(ctx: StageContext) -> dict[str, Any]:
         kept = src[keep]
     ctx.report(stable_points=len(kept), all_points=len(src))
     return registration_result(ctx, kept, tgt, t_local, origin, fitness, rmse, dist, f"stable_areas+{p.method}")
+
+
+SPEC = family_stage("registrar", name="stable_areas", version="1.0.0", params=StableAreasParams, run=stable_areas,
+                    description="ICP on stable areas only (box, and trimming of changed points).")

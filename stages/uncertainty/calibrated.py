@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from gdt_pipeline import GaussianUncertainty, StageContext
-from gdt_pipeline.sensors import load_profile
+from gdt_pipeline import GaussianUncertainty, StageContext, family_stage
+from gdt_pipeline.sensors import load_profile, profile_problems
 
 from ._select import map_selected
 
@@ -28,3 +29,13 @@ def calibrated(ctx: StageContext) -> dict[str, Any]:
     unc = GaussianUncertainty.isotropic(profile.isotropic_sigma(units))
     ctx.log.info("calibrated sigma %.6g %s from profile %s", float(np.sqrt(unc.cov[0, 0, 0])), units, profile.name)
     return {"recent": map_selected(ctx, lambda d: d.with_uncertainty(unc))}
+
+
+def profile_problems_isotropic(params: CalibratedParams, base: Path) -> list[tuple[str, str]]:
+    """The profile, checked before a run: a readable, valid, isotropic profile."""
+    return [("profile", m) for m in profile_problems(params.profile, base, isotropic=True)]
+
+
+SPEC = family_stage("uncertainty", name="calibrated", version="1.0.0", params=CalibratedParams, run=calibrated,
+                    validate=profile_problems_isotropic, tiling="tile",
+                    description="Isotropic σ of a profile from `gdt calibrate` (scans of a known object).")

@@ -8,7 +8,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, model_validator
 
-from gdt_pipeline import BoxUncertainty, GaussianUncertainty, StageContext
+from gdt_pipeline import BoxUncertainty, GaussianUncertainty, StageContext, family_stage
 
 from ._select import map_selected
 
@@ -69,3 +69,8 @@ def constant(ctx: StageContext) -> dict[str, Any]:
     """Every selected recent dataset gets the one uncertainty of the parameters."""
     unc = ctx.params.build()
     return {"recent": map_selected(ctx, lambda d: d.with_uncertainty(unc))}
+
+
+SPEC = family_stage("uncertainty", name="constant", version="1.0.0", params=ConstantParams, run=constant,
+                    tiling="tile",  # each element's model from that element alone
+                    description="One Gaussian (isotropic/anisotropic) or tolerance box for a whole dataset.")

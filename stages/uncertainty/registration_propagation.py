@@ -6,7 +6,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from gdt_pipeline import Dataset, GaussianUncertainty, StageContext
+from gdt_pipeline import Dataset, GaussianUncertainty, StageContext, family_stage
 
 from ._select import map_selected, selected
 from .estimators import propagate_registration
@@ -41,3 +41,8 @@ def registration_propagation(ctx: StageContext) -> dict[str, Any]:
         return ds.with_uncertainty(GaussianUncertainty(ds.element_covariance() + extra))
 
     return {"recent": map_selected(ctx, add_registration)}
+
+
+SPEC = family_stage("uncertainty", name="registration_propagation", version="1.0.0", params=PropagationParams,
+                    run=registration_propagation, requires=("recent", "registration"), tiling="tile",
+                    description="Add the registration's transform covariance to every element (as M3C2-EP).")

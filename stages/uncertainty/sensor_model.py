@@ -7,14 +7,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveInt
 
-from gdt_pipeline import Dataset, GaussianUncertainty, StageContext
+from gdt_pipeline import Dataset, GaussianUncertainty, StageContext, family_stage
 from gdt_pipeline.geometry import estimate_normals, knn_reach
-from gdt_pipeline.sensors import PRESETS, SensorProfile, load_profile
+from gdt_pipeline.sensors import PRESETS, SensorProfile, load_profile, profile_problems
 
 from ._select import map_selected
 from .estimators import beam_covariances
@@ -131,3 +132,14 @@ def incidence_cosines(ctx: StageContext, ds: Dataset, origin: np.ndarray, profil
     if ctx.tile is not None:  # in a tile: the runner checks that every neighbourhood was whole
         ctx.neighbourhoods(ds.points, knn_reach(ds.points, ctx.params.normal_neighbours))
     return np.where(np.isfinite(cos), cos, np.einsum("ij,ij->i", normals, unit))
+
+
+def profile_problems_any(params: SensorModelParams, base: Path) -> list[tuple[str, str]]:
+    """The profile, checked before a run: a preset or a readable, valid profile file."""
+    return [("profile", m) for m in profile_problems(params.profile, base)]
+
+
+SPEC = family_stage("uncertainty", name="sensor_model", version="1.0.0", params=SensorModelParams, run=sensor_model,
+                    validate=profile_problems_any, survey=sensor_survey, optional=("reference",), tiling="tile",
+                    description="Per-point covariance from sensor pose, range and incidence (preset or profile), "
+                                "optionally self-calibrated against the twin's meshes.")

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
 
-from gdt_pipeline import Dataset, GaussianUncertainty, StageContext
+from gdt_pipeline import Dataset, GaussianUncertainty, StageContext, family_stage
 
 from . import estimators
 from ._select import map_selected
@@ -46,3 +46,7 @@ def voxel_mle(ctx: StageContext) -> dict[str, Any]:
         return dataclasses.replace(ds, points=mean, uncertainty=GaussianUncertainty(cov))
 
     return {"recent": map_selected(ctx, estimate)}
+
+
+SPEC = family_stage("uncertainty", name="voxel_mle", version="1.0.0", params=VoxelMleParams, run=voxel_mle,
+                    description="Maximum-likelihood Gaussians on an overlapping voxel grid (dense noisy clouds).")

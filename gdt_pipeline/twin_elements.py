@@ -1,4 +1,6 @@
-"""Adapter from the engine's composite to the twin store's element sets (the store knows numpy and pxr only)."""
+"""The engine's composite as the twin store's element sets (one per item, with its uncertainty, states and scores; the
+store knows numpy and pxr only), and, read back from a twin, which identified parts (IFC elements, named CAD parts)
+an epoch removed."""
 
 from __future__ import annotations
 

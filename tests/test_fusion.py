@@ -131,16 +131,18 @@ def test_new_elements_come_out_as_segments_with_artefacts_flagged(registry, scen
 def test_segments_round_trip_through_the_twin(tmp_path) -> None:
     from pxr import Usd
 
-    from twin_store import TwinStore
+    from twin_store import Segment, TwinStore
 
     store = TwinStore.create(tmp_path / "twin")
-    seg = {"id": 3, "kind": "new", "centroid": [1.0, 2.0, 3.0], "lower": [0.5, 1.5, 2.5], "upper": [1.5, 2.5, 3.5],
-           "mean_score": 12.5, "size": 40, "artefact": False, "members": {"E1_scan": np.arange(40)}}
+    seg = Segment(id=3, kind="new", centroid=np.array([1.0, 2.0, 3.0]), lower=np.array([0.5, 1.5, 2.5]),
+                  upper=np.array([1.5, 2.5, 3.5]), mean_score=12.5, size=40, artefact=False,
+                  members={"E1_scan": np.arange(40)})
     store.write_epoch("E1", [], {}, segments=[seg])
     (back,) = store.read_segments("E1")
-    assert back["id"] == 3 and back["kind"] == "new" and back["size"] == 40 and not back["artefact"]
-    np.testing.assert_allclose(back["centroid"], [1, 2, 3])
-    np.testing.assert_array_equal(back["members"]["E1_scan"], np.arange(40))
+    assert back.id == 3 and back.kind == "new" and back.size == 40 and not back.artefact and back.part is None
+    np.testing.assert_allclose(back.centroid, [1, 2, 3])
+    np.testing.assert_array_equal(back.members["E1_scan"], np.arange(40))
+    assert store.read_segments("E1", members=False)[0].members == {}
     stage = Usd.Stage.Open(str(tmp_path / "twin" / "twin.usda"))  # held: a prim dies with its stage
     prim = stage.GetPrimAtPath("/Segments/E1/seg_0003")
     assert prim and prim.GetAttribute("gdt:meanScore").Get() == 12.5
@@ -238,14 +240,12 @@ def test_a_catalogue_part_fitted_to_a_new_segment_gives_its_centre(registry, sce
     assert seg.part == "bracket" and np.linalg.norm(seg.part_centre - centre) < 1e-3 and seg.fit_rms < 3e-4
     assert notes["parts"]["segments"][0]["fitted"] == "bracket"
     assert len(notes["parts"]["models"]["bracket"]["sha256"]) == 64
-    import dataclasses
-
     store = TwinStore.create(tmp_path / "twin")
-    store.write_epoch("E2", [], {}, segments=[dataclasses.asdict(g) for g in comp.segments])
-    back = next(g for g in store.read_segments("E2") if not g["artefact"])
-    assert back["part"] == "bracket" and back["fit_rms"] == pytest.approx(seg.fit_rms)
-    np.testing.assert_allclose(back["part_centre"], seg.part_centre)
-    np.testing.assert_allclose(back["part_pose"], seg.part_pose)
+    store.write_epoch("E2", [], {}, segments=comp.segments)
+    back = next(g for g in store.read_segments("E2") if not g.artefact)
+    assert back.part == "bracket" and back.fit_rms == pytest.approx(seg.fit_rms)
+    np.testing.assert_allclose(back.part_centre, seg.part_centre)
+    np.testing.assert_allclose(back.part_pose, seg.part_pose)
     with pytest.raises(ValueError, match="no model file"):
         _run(registry, "keep_unchanged", reference, [new], [change], parts=[{"name": "x", "path": "/nope.obj"}])
 

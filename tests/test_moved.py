@@ -63,20 +63,25 @@ def test_a_part_seen_at_a_new_place_is_recorded_as_moved(registry) -> None:
 
 def test_the_moved_record_is_written_and_read_back_with_usd() -> None:
     stage = Usd.Stage.CreateInMemory()
-    seg = {"id": 3, "kind": "new", "centroid": [1, 2, 3], "lower": [0, 0, 0], "upper": [1, 1, 1], "mean_score": 9.0,
-           "size": 40, "artefact": False, "members": {"E1_scan": np.arange(4)}, "moved_from": 5,
-           "moved_item": "E0_cad_box", "displacement": np.array([0.25, -0.12, 0.0]), "rotation_deg": 1.5}
+    seg = Segment(id=3, kind="new", centroid=np.array([1, 2, 3]), lower=np.zeros(3), upper=np.ones(3),
+                  mean_score=9.0, size=40, artefact=False, members={"E1_scan": np.arange(4)}, moved_from=5,
+                  moved_item="E0_cad_box", displacement=np.array([0.25, -0.12, 0.0]), rotation_deg=1.5)
     guides.define_segment(stage, "E1", seg)
     back = guides.read_segments(stage, "E1")[0]
-    assert back["moved_from"] == 5 and back["moved_item"] == "E0_cad_box" and back["rotation_deg"] == 1.5
-    assert np.allclose(back["displacement"], [0.25, -0.12, 0.0])
+    assert back.moved_from == 5 and back.moved_item == "E0_cad_box" and back.rotation_deg == 1.5
+    assert np.allclose(back.displacement, [0.25, -0.12, 0.0])
 
 
 def test_moved_records_are_scored_against_the_true_displacements() -> None:
     from gdt_pipeline.evaluation.family_scoring import moved_scores
 
-    segments = [{"moved_item": "E0_cad_box_3", "displacement": [0.2, 0.0, 0.001]},
-                {"moved_item": "E0_cad_pipe_1", "displacement": [0.0, 0.1, 0.0]}, {"moved_item": None}]
+    def seg(k: int, item: str | None, shift: list[float] | None) -> Segment:
+        return Segment(id=k, kind="new", centroid=np.zeros(3), lower=np.zeros(3), upper=np.ones(3), mean_score=9.0,
+                       size=40, artefact=False, moved_item=item,
+                       displacement=None if shift is None else np.array(shift))
+
+    segments = [seg(0, "E0_cad_box_3", [0.2, 0.0, 0.001]), seg(1, "E0_cad_pipe_1", [0.0, 0.1, 0.0]),
+                seg(2, None, None)]
     out = moved_scores({"box_3": [0.2, 0.0, 0.0], "panel_2": [0.0, 0.05, 0.0]}, segments)
     assert out["parts"]["box_3"] == {"recorded": True, "error_mm": 1.0}
     assert out["parts"]["panel_2"] == {"recorded": False, "error_mm": None}
@@ -86,10 +91,14 @@ def test_moved_records_are_scored_against_the_true_displacements() -> None:
 def test_gdt_log_lists_the_moved_parts() -> None:
     from gdt_pipeline.cli.twin_commands import moved_lines
 
+    def seg(k: int, **moved: object) -> Segment:
+        return Segment(id=k, kind="new", centroid=np.zeros(3), lower=np.zeros(3), upper=np.ones(3), mean_score=9.0,
+                       size=40, artefact=False, **moved)
+
     class Store:
-        def read_segments(self, epoch_id: str) -> list[dict]:
-            return [{"id": 0, "kind": "new"}, {"id": 2, "kind": "new", "moved_item": "E0_cad_box", "moved_from": 7,
-                                               "displacement": np.array([0.3, -0.4, 0.0]), "rotation_deg": 0.5}]
+        def read_segments(self, epoch_id: str, *, members: bool = True) -> list[Segment]:
+            return [seg(0), seg(2, moved_item="E0_cad_box", moved_from=7, displacement=np.array([0.3, -0.4, 0.0]),
+                            rotation_deg=0.5)]
 
     assert moved_lines(Store(), "E1") == ["E1: E0_cad_box moved by 0.5 (0.3, -0.4, 0), turned 0.5°; new segment 2, "
                                           "removed segment 7"]

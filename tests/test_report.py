@@ -52,10 +52,10 @@ def test_the_page_says_what_it_shows(page: tuple[str, object], twin: Path) -> No
     for name in STATE_NAMES:
         assert f"<td>{name.replace('_', ' ')}</td><td class=num>{counts.get(name, 0):,}</td>" in html
     segments = store.read_segments("E1")
-    assert segments and any(s["kind"] == "new" for s in segments)
+    assert segments and any(s.kind == "new" for s in segments)
     rows = re.findall(r'<tr data-segment="(\d+)"', html)
-    assert [int(r) for r in rows] == [s["id"] for s in segments]
-    assert set(page_data(html)["segments"]) == {str(s["id"]) for s in segments}
+    assert [int(r) for r in rows] == [s.id for s in segments]
+    assert set(page_data(html)["segments"]) == {str(s.id) for s in segments}
     assert 'id="view3d"' in html and 'id="segments"' in html
     assert "τ = 10 (all datasets)" in html or "fixed: τ = 10" in html  # the fixed threshold, from its params
     assert "model <b>isotropic</b>" in html  # the uncertainty stage's model

@@ -23,7 +23,7 @@ def test_run_ends_with_what_changed_and_where_the_time_went(tmp_path: Path) -> N
     assert cells[:5] == ["E1", f"{counts['new']:,}", f"{counts['removed']:,}", f"{counts['unchanged']:,}",
                          f"{counts['outside_rov']:,}"]
     segments = store.read_segments("E1")
-    assert cells[5].startswith(f"{sum(s['kind'] == 'new' for s in segments)} new") and counts["new"] > 900
+    assert cells[5].startswith(f"{sum(s.kind == 'new' for s in segments)} new") and counts["new"] > 900
     stages = {st["uses"] for e in store.epochs() for st in store.provenance(e)["stages"]}
     listed = set(re.findall(r"^│ (\w+) +│ \w+ +│ +\d+ │", res.stdout, flags=re.MULTILINE))
     assert listed == stages and "time per stage" in res.stdout

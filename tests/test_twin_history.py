@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdValidation
 
+from gdt_pipeline.provenance import EpochProvenance
 from gdt_pipeline.render import render_stage
 from gdt_pipeline.runner import run_workflow
 from gdt_pipeline.simulation import make_test_scene, scene_objects
@@ -42,7 +43,8 @@ def test_log_and_diff(three_epochs: Path, cube_scene: CubeScene) -> None:
     n_new = int(cube_scene.changed.sum())
     assert hist[1].counts["new"] == pytest.approx(n_new, abs=n_new * 0.03)
     assert hist[2].counts["new"] == 0  # the same scene again: everything is known now
-    assert hist[1].inputs[0]["path"] == "scan.ply" and len(hist[1].inputs[0]["sha256"]) == 64
+    (scan_input,) = EpochProvenance.from_dict(hist[1].provenance).inputs
+    assert scan_input.path == "scan.ply" and len(scan_input.sha256) == 64
     rows = {r.key: r for r in store.diff("E1", "E2")}
     assert rows["E2_again"].added and rows["E2_again"].came_in == 0
     scan = rows["E1_scan"]

@@ -1,20 +1,21 @@
 """The twin store: a USD root stage with one layer per epoch, per-element primvars and provenance, atomic writes.
 
 Depends on numpy and pxr only. Modules: ``names`` (codes, paths, primvar docs), ``elements`` (ElementSet and its
-USD prim), ``guides`` (regions of view, segments), ``history`` (epoch records, diffs), ``layers`` (atomic layer
-files), ``integrity`` (layer sha256s, what a twin folder owns), ``swap`` (replacing a whole twin, recovery after a
-kill), ``faults`` (the kill tests' injection points), ``lock`` (the writer lock), ``lean`` (set by set,
-value by value reads), ``store`` (TwinStore)."""
+USD prim), ``segments`` (the Segment record), ``guides`` (regions of view, segments as prims), ``history`` (one
+entry per epoch, diffs), ``layers`` (atomic layer files), ``integrity`` (layer sha256s, what a twin folder owns),
+``swap`` (replacing a whole twin, recovery after a kill), ``faults`` (the kill tests' injection points), ``lock``
+(the writer lock), ``lean`` (set by set, value by value reads), ``store`` (TwinStore)."""
 
 from .elements import ElementSet, display_colours
 from .errors import TwinStoreError
 from .faults import FAULT_STEPS, fault
-from .history import EpochRecord, SetDiff
+from .history import EpochEntry, SetDiff
 from .integrity import foreign_files, sha256_file
 from .lean import LeanSet
 from .lock import lock_path, writer_lock
 from .names import REASON_NAMES, RUN_LOCK_NAME, STATE_COLORS, STATE_NAMES, state_colours
 from .payloads import preview_rows
+from .segments import Segment
 from .store import TwinStore
 from .swap import partial_path, recover_leftovers, swap_into_place
 
@@ -25,8 +26,9 @@ __all__ = [
     "STATE_COLORS",
     "STATE_NAMES",
     "ElementSet",
-    "EpochRecord",
+    "EpochEntry",
     "LeanSet",
+    "Segment",
     "SetDiff",
     "TwinStore",
     "TwinStoreError",

@@ -8,6 +8,7 @@ from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
 from .errors import TwinStoreError
 from .names import ROV_PRIM, SEGMENTS_PRIM
+from .segments import Segment
 
 MEMBERS = "gdt:members:"  # namespace of a segment's member indices, one int array per element set
 
@@ -40,63 +41,73 @@ def read_region_of_view(stage: Usd.Stage, epoch_id: str) -> tuple[np.ndarray, np
     return pts, faces
 
 
-def define_segment(stage: Usd.Stage, epoch_id: str, seg: dict) -> None:
+def define_segment(stage: Usd.Stage, epoch_id: str, seg: Segment) -> None:
     """One segment as a typeless prim with its figures; members as one int array per element set."""
-    prim = stage.DefinePrim(f"{SEGMENTS_PRIM}/{epoch_id}/seg_{int(seg['id']):04d}")
-    attrs = {"gdt:kind": (Sdf.ValueTypeNames.Token, seg["kind"]),
-             "gdt:centroid": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg["centroid"]))),
-             "gdt:lower": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg["lower"]))),
-             "gdt:upper": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg["upper"]))),
-             "gdt:meanScore": (Sdf.ValueTypeNames.Double, float(seg["mean_score"])),
-             "gdt:elementCount": (Sdf.ValueTypeNames.Int, int(seg["size"])),
-             "gdt:artefact": (Sdf.ValueTypeNames.Bool, bool(seg["artefact"]))}
-    if seg.get("part") is not None:
+    prim = stage.DefinePrim(f"{SEGMENTS_PRIM}/{epoch_id}/seg_{int(seg.id):04d}")
+    attrs = {"gdt:kind": (Sdf.ValueTypeNames.Token, seg.kind),
+             "gdt:centroid": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg.centroid))),
+             "gdt:lower": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg.lower))),
+             "gdt:upper": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg.upper))),
+             "gdt:meanScore": (Sdf.ValueTypeNames.Double, float(seg.mean_score)),
+             "gdt:elementCount": (Sdf.ValueTypeNames.Int, int(seg.size)),
+             "gdt:artefact": (Sdf.ValueTypeNames.Bool, bool(seg.artefact))}
+    if seg.part is not None:
         attrs.update({
-            "gdt:part": (Sdf.ValueTypeNames.String, str(seg["part"])),
-            "gdt:partCentre": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg["part_centre"]))),
+            "gdt:part": (Sdf.ValueTypeNames.String, str(seg.part)),
+            "gdt:partCentre": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, _given(seg.part_centre)))),
             # row-major 4x4 acting on column vectors (not Gf.Matrix4d, which acts on row vectors)
             "gdt:partPose": (Sdf.ValueTypeNames.DoubleArray,
-                             Vt.DoubleArray.FromNumpy(np.asarray(seg["part_pose"], dtype=np.float64).ravel())),
-            "gdt:fitRms": (Sdf.ValueTypeNames.Double, float(seg["fit_rms"])),
-            "gdt:fitFitness": (Sdf.ValueTypeNames.Double, float(seg["fit_fitness"]))})
-    if seg.get("moved_from") is not None:
+                             Vt.DoubleArray.FromNumpy(np.asarray(seg.part_pose, dtype=np.float64).ravel())),
+            "gdt:fitRms": (Sdf.ValueTypeNames.Double, float(seg.fit_rms)),
+            "gdt:fitFitness": (Sdf.ValueTypeNames.Double, float(seg.fit_fitness))})
+    if seg.moved_from is not None:
         attrs.update({
-            "gdt:movedFrom": (Sdf.ValueTypeNames.Int, int(seg["moved_from"])),
-            "gdt:movedItem": (Sdf.ValueTypeNames.String, str(seg["moved_item"])),
-            "gdt:displacement": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, seg["displacement"]))),
-            "gdt:rotationDeg": (Sdf.ValueTypeNames.Double, float(seg["rotation_deg"]))})
+            "gdt:movedFrom": (Sdf.ValueTypeNames.Int, int(seg.moved_from)),
+            "gdt:movedItem": (Sdf.ValueTypeNames.String, str(seg.moved_item)),
+            "gdt:displacement": (Sdf.ValueTypeNames.Double3, Gf.Vec3d(*map(float, _given(seg.displacement)))),
+            "gdt:rotationDeg": (Sdf.ValueTypeNames.Double, float(seg.rotation_deg))})
     for name, (tname, value) in attrs.items():
         prim.CreateAttribute(name, tname).Set(value)
-    for key, idx in seg["members"].items():
+    for key, idx in seg.members.items():
         if not Tf.IsValidIdentifier(key):
             raise TwinStoreError(f"segment member set {key!r} is not a valid identifier")
         prim.CreateAttribute(f"{MEMBERS}{key}", Sdf.ValueTypeNames.Int64Array).Set(
             Vt.Int64Array.FromNumpy(np.asarray(idx, dtype=np.int64)))
 
 
-def read_segments(stage: Usd.Stage, epoch_id: str, *, members: bool = True) -> list[dict]:
-    """The segments an epoch recorded, as dicts, in id order (``members=False``: without the member indices)."""
+def _given(values: np.ndarray | None) -> np.ndarray:
+    if values is None:
+        raise TwinStoreError("a segment with a fitted part or a move needs its centre and displacement")
+    return values
+
+
+def read_segments(stage: Usd.Stage, epoch_id: str, *, members: bool = True) -> list[Segment]:
+    """The segments an epoch recorded, in id order (``members=False``: without the member indices)."""
     root = stage.GetPrimAtPath(f"{SEGMENTS_PRIM}/{epoch_id}")
     out = [_read_segment(prim, members) for prim in (root.GetChildren() if root else [])]
-    return sorted(out, key=lambda d: d["id"])
+    return sorted(out, key=lambda g: g.id)
 
 
-def _read_segment(prim: Usd.Prim, with_members: bool = True) -> dict:
-    """One segment prim as the dict ``define_segment`` was given (members empty unless ``with_members``)."""
+def _read_segment(prim: Usd.Prim, with_members: bool = True) -> Segment:
+    """One segment prim as the ``Segment`` it was written from (members empty unless ``with_members``)."""
     values = {a.GetName(): a.Get() for a in prim.GetAttributes() if not a.GetName().startswith(MEMBERS)}
     get = values.get
     members = {a.GetName()[len(MEMBERS):]: np.asarray(a.Get(), dtype=np.int64)
                for a in prim.GetAttributes() if with_members and a.GetName().startswith(MEMBERS)}
-    out = {"id": int(prim.GetName()[4:]), "kind": str(get("gdt:kind")),
-           "centroid": np.array(get("gdt:centroid")), "lower": np.array(get("gdt:lower")),
-           "upper": np.array(get("gdt:upper")), "mean_score": float(get("gdt:meanScore")),
-           "size": int(get("gdt:elementCount")), "artefact": bool(get("gdt:artefact")),
-           "members": members}
+    part = {}
     if get("gdt:part") is not None:
-        out.update({"part": str(get("gdt:part")), "part_centre": np.array(get("gdt:partCentre")),
-                    "part_pose": np.asarray(get("gdt:partPose"), dtype=np.float64).reshape(4, 4),
-                    "fit_rms": float(get("gdt:fitRms")), "fit_fitness": float(get("gdt:fitFitness"))})
+        part = {"part": str(get("gdt:part")), "part_centre": np.array(get("gdt:partCentre")),
+                "part_pose": np.asarray(get("gdt:partPose"), dtype=np.float64).reshape(4, 4),
+                "fit_rms": float(get("gdt:fitRms")), "fit_fitness": float(get("gdt:fitFitness"))}
+    moved = {}
     if get("gdt:movedFrom") is not None:
-        out.update({"moved_from": int(get("gdt:movedFrom")), "moved_item": str(get("gdt:movedItem")),
-                    "displacement": np.array(get("gdt:displacement")), "rotation_deg": float(get("gdt:rotationDeg"))})
-    return out
+        moved = {"moved_from": int(get("gdt:movedFrom")), "moved_item": str(get("gdt:movedItem")),
+                 "displacement": np.array(get("gdt:displacement")), "rotation_deg": float(get("gdt:rotationDeg"))}
+    kind = str(get("gdt:kind"))
+    if kind not in ("new", "removed"):
+        raise TwinStoreError(f"segment {prim.GetPath()}: kind {kind!r} is neither 'new' nor 'removed'")
+    return Segment(id=int(prim.GetName()[4:]), kind="new" if kind == "new" else "removed",
+                   centroid=np.array(get("gdt:centroid")), lower=np.array(get("gdt:lower")),
+                   upper=np.array(get("gdt:upper")), mean_score=float(get("gdt:meanScore")),
+                   size=int(get("gdt:elementCount")), artefact=bool(get("gdt:artefact")), members=members, **part,
+                   **moved)

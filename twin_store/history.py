@@ -1,9 +1,10 @@
-"""History queries over a twin's epochs: one record per epoch, and what changed per element set between two."""
+"""History queries over a twin's epochs: one entry per epoch, and what changed per element set between two."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -12,17 +13,14 @@ from .names import STATE_NAMES
 
 
 @dataclass(frozen=True)
-class EpochRecord:
-    """One epoch of a twin's history."""
+class EpochEntry:
+    """One epoch of a twin's history: its id and place, its visible elements per change state, and the provenance
+    its layer records (as stored; ``gdt_pipeline.provenance.EpochProvenance.from_dict`` reads it)."""
 
     id: str
     index: int
-    role: str
-    started: str
-    finished: str
-    inputs: list = field(default_factory=list)
-    counts: dict = field(default_factory=dict)
-    provenance: dict = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -37,13 +35,6 @@ class SetDiff:
     went_out: int
     transitions: dict = field(default_factory=dict)
     visible: dict = field(default_factory=dict)
-
-
-def epoch_record(epoch_id: str, index: int, prov: dict, counts: dict[str, int]) -> EpochRecord:
-    """An epoch's record from its provenance and its visible elements per change state."""
-    return EpochRecord(id=epoch_id, index=index, role=prov.get("epoch", {}).get("role", ""),
-                       started=prov.get("started", ""), finished=prov.get("finished", ""),
-                       inputs=prov.get("inputs", []), counts=counts, provenance=prov)
 
 
 def set_diff(old: ElementSet | None, es: ElementSet) -> SetDiff:

@@ -26,13 +26,14 @@ from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 from . import guides
 from .elements import ElementSet, define_element_set, identity_of, override_element_set, read_element_set
 from .errors import TwinStoreError
-from .history import EpochRecord, SetDiff, count_states, epoch_record, set_diff
+from .history import EpochEntry, SetDiff, count_states, set_diff
 from .integrity import LayerDigests, run_lock_problems
 from .layers import export_atomic, open_layer, usd_message
 from .lean import LeanSet, iter_lean_sets
 from .lock import writer_lock
 from .names import EPOCH_DIR, REASON_NAMES, ROOT_NAME, STATE_NAMES, TWIN_PRIM
 from .payloads import define_payload_set, relative_payloads, restate_preview, wants_payload
+from .segments import Segment
 from .swap import leftover_advice, leftovers
 
 
@@ -170,7 +171,7 @@ class TwinStore:
 
     def write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict,
                     region_of_view: tuple[np.ndarray, np.ndarray] | None = None,
-                    segments: Sequence[dict] = ()) -> Path:
+                    segments: Sequence[Segment] = ()) -> Path:
         """Write one epoch layer holding the composite after this epoch (and the region of view its sensors
         measured, as a guide mesh under /RegionsOfView) ; return the layer path."""
         with self.writing():
@@ -178,7 +179,7 @@ class TwinStore:
 
     def _write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict,
                      region_of_view: tuple[np.ndarray, np.ndarray] | None = None,
-                     segments: Sequence[dict] = ()) -> Path:
+                     segments: Sequence[Segment] = ()) -> Path:
         existing = self._check_new_epoch(epoch_id, elements)
         layer = Sdf.Layer.CreateAnonymous(f"{epoch_id}.usdc")
         stage = self._stage_upto(existing, extra=layer)
@@ -249,8 +250,8 @@ class TwinStore:
     # ----------------------------------------------------------------------------------------------------------------
     # Reading an epoch
 
-    def read_segments(self, epoch_id: str, *, members: bool = True) -> list[dict]:
-        """The segments (connected changed elements) an epoch recorded, as dicts, in id order; ``members=False``
+    def read_segments(self, epoch_id: str, *, members: bool = True) -> list[Segment]:
+        """The segments (connected changed elements) an epoch recorded, in id order; ``members=False``
         leaves out the member indices (a removed segment of a large scan has millions)."""
         return guides.read_segments(self._stage_upto(self._epochs_upto(epoch_id)), epoch_id, members=members)
 
@@ -297,13 +298,13 @@ class TwinStore:
     # ----------------------------------------------------------------------------------------------------------------
     # History queries
 
-    def history(self) -> list[EpochRecord]:
-        """One record per epoch, oldest first: when it was made, from which inputs, and its state counts."""
+    def history(self) -> list[EpochEntry]:
+        """One entry per epoch, oldest first: its state counts and the provenance its layer records."""
         out = []
         for index, eid in enumerate(self.epochs()):
             prov = self.provenance(eid)
             counts = prov.get("counts") or count_states(self.read_epoch(eid))
-            out.append(epoch_record(eid, index, prov, counts))
+            out.append(EpochEntry(eid, index, counts, prov))
         return out
 
     def diff(self, epoch_a: str, epoch_b: str) -> list[SetDiff]:

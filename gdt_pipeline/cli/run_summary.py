@@ -10,17 +10,19 @@ from typing import Any
 from rich.console import Group
 from rich.table import Table
 
+from ..types import Segment
+
 STATE_COLUMNS = (("new", "new"), ("removed", "removed"), ("unchanged", "unchanged"), ("outside_rov", "outside view"))
 
 
-def _segment_text(segments: list[dict[str, Any]]) -> str:
+def _segment_text(segments: list[Segment]) -> str:
     """Segments of an epoch in one cell: '2 new, 1 removed (1 artefact), 1 moved part'."""
     if not segments:
         return "-"
-    new = sum(1 for s in segments if s.get("kind") == "new")
-    removed = sum(1 for s in segments if s.get("kind") == "removed")
-    artefacts = sum(1 for s in segments if s.get("artefact"))
-    moved = sum(1 for s in segments if s.get("moved_item"))
+    new = sum(1 for s in segments if s.kind == "new")
+    removed = sum(1 for s in segments if s.kind == "removed")
+    artefacts = sum(1 for s in segments if s.artefact)
+    moved = sum(1 for s in segments if s.moved_item)
     text = f"{new} new, {removed} removed"
     if artefacts:
         text += f" ({artefacts} artefact{'s' if artefacts != 1 else ''})"
@@ -42,7 +44,7 @@ def change_table(store: Any) -> Table:
         counts = prov.get("counts") or {}
         seconds = sum(float(st.get("seconds") or 0.0) for st in prov.get("stages", []))
         table.add_row(eid, *(f"{counts.get(key, 0):,}" for key, _ in STATE_COLUMNS),
-                      _segment_text(store.read_segments(eid)), f"{seconds:.1f}")
+                      _segment_text(store.read_segments(eid, members=False)), f"{seconds:.1f}")
     return table
 
 

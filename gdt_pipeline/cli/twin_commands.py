@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -48,6 +49,7 @@ def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
     identified parts (IFC elements by GlobalId, named CAD parts) an epoch found removed."""
     from twin_store import TwinStore
 
+    from ..provenance import EpochProvenance
     from ..twin_elements import identified_changes, identity_label
 
     store = TwinStore.open(twin)
@@ -62,19 +64,20 @@ def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
             click.echo(yaml.safe_dump(r.provenance, sort_keys=False, default_flow_style=None, width=118))
         return
     identified = identified_changes(store, [r.id for r in records])
+    provs = [EpochProvenance.from_dict(r.provenance) for r in records]
     if as_json:
-        click.echo(json.dumps([{"epoch": r.id, "index": r.index, "role": r.role, "started": r.started,
-                                "finished": r.finished, "inputs": r.inputs, "counts": r.counts,
-                                "identified_removals": identified.get(r.id, []),
-                                **({"provenance": r.provenance} if provenance else {})} for r in records], indent=2))
+        click.echo(json.dumps([{"epoch": r.id, "index": r.index, "role": p.epoch.role, "started": p.started,
+                                "finished": p.finished, "inputs": [dataclasses.asdict(i) for i in p.inputs],
+                                "counts": r.counts, "identified_removals": identified.get(r.id, []),
+                                **({"provenance": r.provenance} if provenance else {})}
+                               for r, p in zip(records, provs, strict=True)], indent=2))
         return
     table = Table(title=f"{twin} ({len(records)} epochs)")
     for col in ("epoch", "role", "finished (UTC)", "inputs", "visible elements"):
         table.add_column(col)
-    for r in records:
-        inputs = "\n".join(f"{i.get('path')} ({str(i.get('sha256', ''))[:12]}, {i.get('elements', '?')} el.)"
-                           for i in r.inputs)
-        table.add_row(r.id, r.role, r.finished, inputs, counts_text(r.counts))
+    for r, p in zip(records, provs, strict=True):
+        inputs = "\n".join(f"{i.path} ({i.sha256[:12]}, {i.elements} el.)" for i in p.inputs)
+        table.add_row(r.id, p.epoch.role, p.finished, inputs, counts_text(r.counts))
     Console(width=max(140, out_console.width)).print(table)
     for r in records:
         for line in moved_lines(store, r.id):
@@ -90,12 +93,12 @@ def log_cmd(twin: Path, as_json: bool, provenance: bool) -> None:
 def moved_lines(store: Any, epoch_id: str) -> list[str]:
     """One line per part an epoch recorded as moved: which part, by how much, from which removed segment."""
     out = []
-    for seg in store.read_segments(epoch_id):
-        if seg.get("moved_item"):
-            d = seg["displacement"]
-            out.append(f"{epoch_id}: {seg['moved_item']} moved by {float(np.linalg.norm(d)):.4g} "
-                       f"({', '.join(f'{x:.4g}' for x in d)}), turned {seg['rotation_deg']:.3g}°; new segment "
-                       f"{seg['id']}, removed segment {seg['moved_from']}")
+    for seg in store.read_segments(epoch_id, members=False):
+        if seg.moved_item and seg.displacement is not None:
+            d = seg.displacement
+            out.append(f"{epoch_id}: {seg.moved_item} moved by {float(np.linalg.norm(d)):.4g} "
+                       f"({', '.join(f'{x:.4g}' for x in d)}), turned {seg.rotation_deg:.3g}°; new segment "
+                       f"{seg.id}, removed segment {seg.moved_from}")
     return out
 
 

@@ -21,7 +21,7 @@ from ..geometry import ReferenceIndex
 from ..names import identifier
 from ..plugins import Registry
 from ..runner import read_dataset
-from ..types import ChangeState
+from ..types import ChangeState, Segment
 from ..workflow import load_workflow
 from .metrics import threshold_candidates
 from .peer_runs import C2C_TAU, c2c_methods, m3c2_peers
@@ -196,10 +196,10 @@ def score_scene(workflow: Path, twin: Path, registry: Registry, peers: tuple[str
             "moved": moved_scores(json.loads(str(et["displacements"])), store.read_segments("E1"))}
 
 
-def moved_scores(displacements: dict[str, list[float]], segments: list[dict]) -> dict[str, Any]:
+def moved_scores(displacements: dict[str, list[float]], segments: list[Segment]) -> dict[str, Any]:
     """Per moved part: whether a new segment records it as moved, and the error of the recorded displacement (mm);
     and the moved records that name a part that did not move."""
-    recorded = {str(g["moved_item"]): np.asarray(g["displacement"]) for g in segments if g.get("moved_item")}
+    recorded = {str(g.moved_item): np.asarray(g.displacement) for g in segments if g.moved_item}
     parts = {}
     for name, shift in displacements.items():
         key = next((k for k in recorded if k.endswith(f"_cad_{name}")), None)

@@ -11,7 +11,7 @@ import numpy as np
 from ..geometry import ReferenceIndex, distance_to
 from ..names import identifier
 from ..sensors import PRESETS
-from ..types import ChangeState
+from ..types import ChangeState, Segment
 from .peer_runs import C2C_TAU
 from .truth import ScanTruth, truth_meshes
 from .twin_points import sample_sets
@@ -117,7 +117,7 @@ def score_new_objects(et: dict[str, Any], methods: dict, points: np.ndarray, tru
     return out
 
 
-def score_segments(segments: list[dict], et: dict[str, Any], truth: ScanTruth, prev_sets: list,
+def score_segments(segments: list[Segment], et: dict[str, Any], truth: ScanTruth, prev_sets: list,
                    objects: list[dict[str, Any]]) -> dict[str, Any]:
     """The twin's own segments scored as objects: each new object's best segment (found when mostly on it and
     holding half its points; centroid error to the noise-free centroid of its scanned surface), and removed objects
@@ -125,11 +125,11 @@ def score_segments(segments: list[dict], et: dict[str, Any], truth: ScanTruth, p
     offsets = np.cumsum([0] + [len(c) for c in truth.changed])
     where = {k: int(o) for k, o in zip(truth.keys, offsets[:-1], strict=True)}
     obj, clean = truth.cat("object"), np.vstack(truth.clean)
-    new_segs = [g for g in segments if g["kind"] == "new" and not g["artefact"]]
-    seg_points = [np.concatenate([where[k] + v for k, v in g["members"].items() if k in where] or [np.zeros(0, int)])
+    new_segs = [g for g in segments if g.kind == "new" and not g.artefact]
+    seg_points = [np.concatenate([where[k] + v for k, v in g.members.items() if k in where] or [np.zeros(0, int)])
                   for g in new_segs]
-    out: dict[str, Any] = {"new_segments": len(new_segs), "artefacts": sum(g["artefact"] for g in segments),
-                           "removed_segments": sum(g["kind"] == "removed" and not g["artefact"] for g in segments)}
+    out: dict[str, Any] = {"new_segments": len(new_segs), "artefacts": sum(g.artefact for g in segments),
+                           "removed_segments": sum(g.kind == "removed" and not g.artefact for g in segments)}
     for o in objects:
         if o["truth"] != "new" or not o.get("points"):
             continue
@@ -139,15 +139,16 @@ def score_segments(segments: list[dict], et: dict[str, Any], truth: ScanTruth, p
         if best is not None and on[seg_points[best]].any():
             pts = seg_points[best]
             found = bool(on[pts].mean() > 0.5 and on[pts].sum() >= 0.5 * on.sum())
-            err = float(np.linalg.norm(new_segs[best]["centroid"] - clean[on].mean(axis=0)) * 1000)
+            err = float(np.linalg.norm(new_segs[best].centroid - clean[on].mean(axis=0)) * 1000)
             solid = et.get("centres", {}).get(o["name"])
             if solid is not None:  # the part's own centre: a one-sided scan sees only the faces towards it
                 o["segment_to_solid_centre_mm"] = round(
-                    float(np.linalg.norm(new_segs[best]["centroid"] - np.asarray(solid)) * 1000), 2)
-                if new_segs[best].get("part") is not None:  # the catalogue part the fusion fitted to the segment
-                    o["fitted_part"] = new_segs[best]["part"]
+                    float(np.linalg.norm(new_segs[best].centroid - np.asarray(solid)) * 1000), 2)
+                fitted = new_segs[best]
+                if fitted.part is not None and fitted.part_centre is not None:  # the part the fusion fitted to it
+                    o["fitted_part"] = fitted.part
                     o["fitted_centre_to_solid_centre_mm"] = round(
-                        float(np.linalg.norm(new_segs[best]["part_centre"] - np.asarray(solid)) * 1000), 2)
+                        float(np.linalg.norm(fitted.part_centre - np.asarray(solid)) * 1000), 2)
         o.setdefault("methods", {})["gdt_segments"] = {"found": found,
                                                        "centre_error_mm": None if err is None else round(err, 2)}
     removed_names = [n for n, st in et.get("objects", {}).items() if st == "removed"]
@@ -155,8 +156,7 @@ def score_segments(segments: list[dict], et: dict[str, Any], truth: ScanTruth, p
     for name in removed_names:
         keys = [es.key for es in prev_sets if es.key.endswith(f"_{identifier('cad_' + name)}")
                 or es.key.endswith(f"_{identifier(name)}")]
-        hits = [g for g in segments if g["kind"] == "removed" and not g["artefact"] and
-                any(k in g["members"] for k in keys)]
+        hits = [g for g in segments if g.kind == "removed" and not g.artefact and any(k in g.members for k in keys)]
         out["removed_found"][name] = len(hits)
     return out
 

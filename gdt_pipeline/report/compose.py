@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from ..types import Segment
 from .figures import histogram_figure, view_figure
 from .histograms import HistogramGroup
 from .page import PageParts, toggles_html
@@ -74,15 +75,15 @@ def histogram_section(group: HistogramGroup, div: str, title: str, xlabel: str, 
     return html, {"id": div, "figure": histogram_figure(group, title, xlabel)}
 
 
-def segment_boxes(segments: list[dict[str, Any]], centre: np.ndarray) -> dict[str, Any]:
+def segment_boxes(segments: list[Segment], centre: np.ndarray) -> dict[str, Any]:
     """Per segment id its box relative to the view's centre (float, for the page's script)."""
-    return {str(int(s["id"])): {"lower": [float(v) for v in np.asarray(s["lower"], np.float64) - centre],
-                                "upper": [float(v) for v in np.asarray(s["upper"], np.float64) - centre]}
+    return {str(int(s.id)): {"lower": [float(v) for v in np.asarray(s.lower, np.float64) - centre],
+                             "upper": [float(v) for v in np.asarray(s.upper, np.float64) - centre]}
             for s in segments}
 
 
 def page_parts(*, twin: str, epoch: str, epochs: list[str], provenance: dict[str, Any], sets: list[SetCensus],
-               scene: SceneData, segments: list[dict[str, Any]], scores: HistogramGroup, sigmas: HistogramGroup,
+               scene: SceneData, segments: list[Segment], scores: HistogramGroup, sigmas: HistogramGroup,
                budget: int, units: str, up_axis: str) -> PageParts:
     """Every section of the page and the data its script draws."""
     figure = view_figure(scene, epochs, units, up_axis)
@@ -93,7 +94,7 @@ def page_parts(*, twin: str, epoch: str, epochs: list[str], provenance: dict[str
     sigma_html, sigma_fig = histogram_section(
         sigmas, "hist-uncertainty", f"Uncertainty σ of the datasets of {epoch}", f"RMS σ ({units})",
         "RMS standard deviation σ of each element of this epoch's datasets, as its uncertainty stage set it")
-    kinds = {"new": sum(s["kind"] == "new" for s in segments), "removed": sum(s["kind"] == "removed" for s in segments)}
+    kinds = {"new": sum(s.kind == "new" for s in segments), "removed": sum(s.kind == "removed" for s in segments)}
     role = (provenance.get("epoch") or {}).get("role", "?")
     header = (f"<header><h1>{esc(twin)} at epoch {esc(epoch)}</h1><p>Epoch {esc(epoch)} ({esc(role)}) of "
               f"{esc(', '.join(epochs))}; twin units {esc(units)}, up axis {esc(up_axis)}.</p>"

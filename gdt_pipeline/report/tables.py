@@ -12,6 +12,7 @@ import numpy as np
 
 from twin_store import STATE_NAMES
 
+from ..types import Segment
 from .scene import SetCensus
 
 
@@ -66,23 +67,23 @@ def _xyz(values: Any) -> str:
     return ", ".join(num(float(v)) for v in np.asarray(values, dtype=np.float64))
 
 
-def segments_table(segments: list[dict[str, Any]], units: str) -> str:
+def segments_table(segments: list[Segment], units: str) -> str:
     """One row per segment (``data-segment`` = its id); a click frames it in the 3-D view."""
     if not segments:
         return '<table id="segments"><tbody><tr><td>This epoch recorded no segments.</td></tr></tbody></table>'
     rows, attrs = [], []
     for seg in segments:
         part = "–"
-        if seg.get("part") is not None:
-            part = f"{esc(seg['part'])} (RMS {num(seg.get('fit_rms'))} {esc(units)})"
+        if seg.part is not None:
+            part = f"{esc(seg.part)} (RMS {num(seg.fit_rms)} {esc(units)})"
         moved = "–"
-        if seg.get("moved_item"):
-            d = np.asarray(seg["displacement"], dtype=np.float64)
-            moved = (f"{esc(seg['moved_item'])}: {num(float(np.linalg.norm(d)))} {esc(units)} ({_xyz(d)}), "
-                     f"{num(seg.get('rotation_deg'), '.3g')}°, from segment {esc(seg.get('moved_from'))}")
-        rows.append([esc(seg["id"]), esc(seg["kind"]), _xyz(seg["centroid"]), f"{int(seg['size']):,}",
-                     num(seg["mean_score"]), "yes" if seg.get("artefact") else "", part, moved])
-        attrs.append(f'data-segment="{int(seg["id"])}" class="segment {esc(seg["kind"])}" tabindex="0"')
+        if seg.moved_item and seg.displacement is not None:
+            d = np.asarray(seg.displacement, dtype=np.float64)
+            moved = (f"{esc(seg.moved_item)}: {num(float(np.linalg.norm(d)))} {esc(units)} ({_xyz(d)}), "
+                     f"{num(seg.rotation_deg, '.3g')}°, from segment {esc(seg.moved_from)}")
+        rows.append([esc(seg.id), esc(seg.kind), _xyz(seg.centroid), f"{int(seg.size):,}",
+                     num(seg.mean_score), "yes" if seg.artefact else "", part, moved])
+        attrs.append(f'data-segment="{int(seg.id)}" class="segment {esc(seg.kind)}" tabindex="0"')
     return table(["id", "kind", f"centroid ({units})", "elements", "mean score", "artefact", "fitted part",
                   "moved (displacement, rotation)"], rows, table_id="segments", row_attrs=attrs, numeric=(0, 3, 4))
 

@@ -294,9 +294,8 @@ def _write_epoch(store: TwinStore, prov: EpochProvenance, slots: dict[str, Any],
     """Write the epoch's layer: the composite's elements, its provenance, region of view and segments."""
     composite: Composite = slots["composite"]
     rov = slots.get("rov")
-    segments = [dataclasses.asdict(g) for g in composite.segments]
     layer = store.write_epoch(prov.epoch.id, composite_to_elements(composite), prov.to_dict(),
-                              None if rov is None else (rov.vertices, rov.faces), segments)
+                              None if rov is None else (rov.vertices, rov.faces), composite.segments)
     return EpochSummary(prov.epoch.id, composite.counts(), seconds, target / "epochs" / Path(layer).name)
 
 

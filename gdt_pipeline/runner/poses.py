@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..types import Dataset, SensorPose
+from ..types import Dataset, ScannerGeometry, SensorPose
 
 log = logging.getLogger("gdt.poses")
 
@@ -46,11 +46,14 @@ def read_pose_file(path: Path) -> SensorPose:
         raise InputError(f"{path}: not a readable pose file: {exc}") from exc
     if not isinstance(data, dict) or data.get("viewpoint") is None:
         raise InputError(f"{path}: a pose file needs a 'viewpoint': [x, y, z] (the station position)")
-    rotation = data.get("rotation")
+    rotation, scanner = data.get("rotation"), data.get("scanner")
+    if scanner is not None and not isinstance(scanner, dict):
+        raise InputError(f"{path}: 'scanner' must be a mapping (kind, fov_deg, aspect, max_range), not {scanner!r}")
     try:
         return SensorPose(position=_vector(data, "viewpoint", path), source="pose_file", origin=path.name,
                           rotation=None if rotation is None else np.asarray(rotation, dtype=np.float64),
-                          target=_vector(data, "target", path), scanner=dict(data.get("scanner") or {}))
+                          target=_vector(data, "target", path),
+                          scanner=None if scanner is None else ScannerGeometry.from_record(scanner))
     except (ValueError, TypeError) as exc:
         raise InputError(f"{path}: {exc}") from exc
 

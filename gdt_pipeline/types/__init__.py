@@ -12,7 +12,7 @@ from .arrays import broadcast_rows, frozen_array
 from .composite import Composite, CompositeItem, EpochInfo, Segment
 from .correspondences import Correspondences
 from .data import Change, Dataset, ItemView, RegionOfView, Registration, Scores, SourceInfo
-from .pose import POSE_SOURCES, SensorPose
+from .pose import POSE_SOURCES, ScannerGeometry, SensorPose
 from .region99 import BOX_99, CHI2_3_99, Region99
 from .states import ChangeState, FusionReason, Kind, Role
 from .uncertainty import BoxUncertainty, GaussianUncertainty, MixtureUncertainty, Uncertainty, concat_uncertainty
@@ -38,6 +38,7 @@ __all__ = [
     "RegionOfView",
     "Registration",
     "Role",
+    "ScannerGeometry",
     "Scores",
     "Segment",
     "SensorPose",

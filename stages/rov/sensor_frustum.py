@@ -55,12 +55,11 @@ def _dataset_frusta(ds: Dataset, p: FrustumParams) -> list[Frustum]:
     to its points."""
     pose = ds.pose
     pts = ds.element_positions()
-    if pose is not None and pose.target is not None and pose.scanner.get("kind", "pinhole") == "pinhole" and all(
-            k in pose.scanner for k in ("fov_deg", "aspect", "max_range")):
+    if pose is not None and pose.target is not None and pose.scanner is not None and pose.scanner.pinhole_frustum:
         eye, sc = pose.position, pose.scanner
-        th = np.tan(np.radians(p.fov_deg or sc["fov_deg"]) / 2)
-        tv = th / (p.aspect or sc["aspect"])
-        far = p.far or float(sc["max_range"])
+        th = np.tan(np.radians(p.fov_deg or sc.fov_deg) / 2)
+        tv = th / (p.aspect or sc.aspect)
+        far = p.far or float(sc.max_range)
         verts, faces = _frustum_mesh(eye, pose.target - eye, (-th, th), (-tv, tv), p.near, far)
         # a scanner's empty rays are empty space; a reconstructed mesh's holes are where its surface was not kept
         free = far if ds.kind == "points" else 0.0

@@ -34,6 +34,7 @@ bench: setup
 
 lint: setup
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 
 setup: system-deps $(STAMP)
 

@@ -16,7 +16,7 @@ import hashlib
 import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, overload
 
 import numba
 from numba import config, prange
@@ -45,7 +45,7 @@ def _package_hash(folder: Path) -> str:
 
 
 @contextlib.contextmanager
-def _cache_dir_for(fn: Callable) -> Iterator[None]:
+def _cache_dir_for(fn: Callable[..., Any]) -> Iterator[None]:
     folder = Path(fn.__code__.co_filename).resolve().parent
     before = config.CACHE_DIR
     config.CACHE_DIR = str(_cache_root() / _package_hash(folder))
@@ -55,11 +55,23 @@ def _cache_dir_for(fn: Callable) -> Iterator[None]:
         config.CACHE_DIR = before
 
 
-def njit(fn: Callable | None = None, **options: Any) -> Any:
-    """``numba.njit`` with the on-disk cache described above (``cache`` is always on)."""
+Kernel = TypeVar("Kernel", bound=Callable[..., Any])
+
+
+@overload
+def njit(fn: Kernel, **options: Any) -> Kernel: ...
+
+
+@overload
+def njit(fn: None = None, **options: Any) -> Callable[[Kernel], Kernel]: ...
+
+
+def njit(fn: Callable[..., Any] | None = None, **options: Any) -> Any:
+    """``numba.njit`` with the on-disk cache described above (``cache`` is always on); a compiled kernel is called
+    as the function it compiles, so it keeps that function's signature for type checkers."""
     options.pop("cache", None)
 
-    def compile_cached(f: Callable) -> Any:
+    def compile_cached(f: Callable[..., Any]) -> Any:
         with _cache_dir_for(f):
             return numba.njit(cache=True, **options)(f)
 

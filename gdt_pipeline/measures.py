@@ -34,7 +34,7 @@ from pydantic import BaseModel
 from .compiled import njit
 from .geometry import sample_surface
 from .plugins import FAMILY_SLOTS, StageContext, StageSpec, family_stage
-from .types import Composite, Correspondences, Dataset, Scores
+from .types import Composite, Correspondences, Dataset, Scores, Uncertainty
 
 Counts = dict[str, dict[str, int]]
 
@@ -68,9 +68,9 @@ class PairGroup:
     idx: np.ndarray
     elements: np.ndarray
     mu_q: np.ndarray
-    u_q: Any
+    u_q: Uncertainty
     mu_r: np.ndarray
-    u_r: Any
+    u_r: Uncertainty
     ref_items: np.ndarray
     ref_elements: np.ndarray
     normal: np.ndarray | None = None  # local surface normal per pair, for tests along the normal
@@ -92,9 +92,9 @@ class PairSource:
     idx: np.ndarray
     element: np.ndarray
     query_position: np.ndarray
-    u_q: Any
+    u_q: Uncertainty
     position: np.ndarray
-    u_r: Any
+    u_r: Uncertainty
     ref_rows: np.ndarray
     ref_item: np.ndarray
     ref_element: np.ndarray
@@ -123,15 +123,16 @@ def pair_sources(ds: Dataset, corr: Correspondences, reference: Composite) -> li
     found = np.flatnonzero(corr.found)
     # per candidate when the correspondences carry query positions, else per element
     per_candidate = corr.query_position is not None
-    qpos = corr.query_position if per_candidate else ds.element_positions()
+    qpos = corr.query_position if corr.query_position is not None else ds.element_positions()
     u_q, u_q_rows = (ds.uncertainty, False) if corr.query_uncertainty is None else (corr.query_uncertainty, True)
     sources = []
-    if corr.ref_uncertainty is not None:  # per-candidate reference models (mixtures of neighbours)
-        over = found[corr.ref_row[found] >= 0]
+    rows = corr.ref_row
+    if corr.ref_uncertainty is not None and rows is not None:  # per-candidate reference models (mixtures)
+        over = found[rows[found] >= 0]
         if over.size:
             sources.append(PairSource(over, corr.element, qpos, u_q, corr.position, corr.ref_uncertainty,
-                                      corr.ref_row, corr.ref_item, corr.ref_element, per_candidate, u_q_rows))
-        found = found[corr.ref_row[found] < 0]
+                                      rows, corr.ref_item, corr.ref_element, per_candidate, u_q_rows))
+        found = found[rows[found] < 0]
     for item in np.unique(corr.ref_item[found]):
         sel = found[corr.ref_item[found] == item]
         ref = reference.items[item].dataset
@@ -158,7 +159,7 @@ def lowest_per_element(elements: np.ndarray, cand_score: np.ndarray, n: int) -> 
 
 
 @njit(cache=True)
-def _lowest(elements, cand_score, score, match) -> None:
+def _lowest(elements: np.ndarray, cand_score: np.ndarray, score: np.ndarray, match: np.ndarray) -> None:
     # one pass in candidate order (a lexsort of a million candidates took 70 ms a dataset); NaN counts as +inf, and
     # an element whose lowest score is not finite has no match
     for i in range(len(elements)):
@@ -172,7 +173,7 @@ def _lowest(elements, cand_score, score, match) -> None:
             score[e], match[e] = np.nan, -1
 
 
-def _sample_offsets(u: Any, n: int, rng: np.random.Generator) -> np.ndarray:
+def _sample_offsets(u: Uncertainty, n: int, rng: np.random.Generator) -> np.ndarray:
     return u.sample(n, rng, 1)[:, 0, :]
 
 
@@ -225,7 +226,7 @@ def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: 
         result = measure(g, ctx.rng)
         s, p, err = result[0], result[1], result[2]
         if counts is not None and len(result) > 3:
-            _add_counts(counts, result[3])  # type: ignore[misc]
+            _add_counts(counts, result[3])
         cand_score[g.idx] = s
         if p is not None:
             if cand_p is None:

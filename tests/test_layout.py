@@ -115,3 +115,12 @@ def test_functions_do_one_job() -> None:
             if length > MAX_FUNCTION_LINES and ONE_PIECE not in doc:
                 bad.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} has {length} lines")
     assert not bad, "\n".join(bad)
+
+
+def test_the_records_and_the_plugin_api_pass_mypy_strict() -> None:
+    """``mypy --strict`` on what `[tool.mypy] files` names (the types and the API plugins build on), as `make lint`."""
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-m", "mypy"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout + res.stderr

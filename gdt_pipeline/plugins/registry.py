@@ -53,8 +53,9 @@ def _forbid_extra(params: type[BaseModel]) -> type[BaseModel]:
     strict = {"extra": "forbid", "allow_inf_nan": cfg.get("allow_inf_nan", False)}
     if all(cfg.get(k) == v for k, v in strict.items()):
         return params
-    return type(params.__name__, (params,), {"model_config": ConfigDict(**{**cfg, **strict}),
-                                             "__module__": params.__module__, "__doc__": params.__doc__})
+    config: ConfigDict = {**cfg, "extra": "forbid", "allow_inf_nan": bool(strict["allow_inf_nan"])}
+    return type(params.__name__, (params,), {"model_config": config, "__module__": params.__module__,
+                                             "__doc__": params.__doc__})
 
 
 def _check_common(spec: StageSpec | ReaderSpec, origin: str) -> str | None:
@@ -256,7 +257,8 @@ def _collect(pm: pluggy.PluginManager, hook: str, loaded: list[_LoadedPlugin], w
             if problem:
                 warnings.append(problem + "; skipped")
                 continue
-            stamp = {"plugin": plugin.dist, "plugin_version": plugin.version, "entry_point": plugin.entry_point}
+            stamp: dict[str, Any] = {"plugin": plugin.dist, "plugin_version": plugin.version,
+                                     "entry_point": plugin.entry_point}
             if hasattr(spec, "params"):
                 stamp["params"] = _forbid_extra(spec.params)
             spec = dataclasses.replace(spec, **stamp)

@@ -8,8 +8,10 @@ Element convention: for a point set an element is a point; for a triangle mesh a
 is treated as infinitely many points that share the facet's uncertainty (paper Sec. 4.2.2).
 """
 
+from twin_store import Segment
+
 from .arrays import broadcast_rows, frozen_array
-from .composite import Composite, CompositeItem, EpochInfo, Segment
+from .composite import Composite, CompositeItem, EpochInfo
 from .correspondences import Correspondences
 from .data import Change, Dataset, ItemView, RegionOfView, Registration, Scores, SourceInfo
 from .pose import POSE_SOURCES, ScannerGeometry, SensorPose

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 
-def frozen_array(a: np.ndarray | list | tuple, dtype: type | np.dtype, ndim_shape: tuple[int | None, ...],
-                 what: str) -> np.ndarray:
+def frozen_array(a: np.ndarray | list[Any] | tuple[Any, ...], dtype: type | np.dtype[Any],
+                 ndim_shape: tuple[int | None, ...], what: str) -> np.ndarray:
     """Return a read-only C-contiguous copy of ``a`` with the given dtype, checking its shape (None = any)."""
     arr = np.ascontiguousarray(np.asarray(a, dtype=dtype))
     if arr.ndim != len(ndim_shape) or any(s is not None and s != d for s, d in zip(ndim_shape, arr.shape, strict=True)):

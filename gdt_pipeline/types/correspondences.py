@@ -21,6 +21,8 @@ from .uncertainty import Uncertainty, concat_uncertainty
 # a field with one row per candidate; ``rows_of`` names the field whose rows its values index (−1: none)
 PER_CANDIDATE: dict[str, Any] = {"per": "candidate"}
 REF_ROWS: dict[str, Any] = {"per": "candidate", "rows_of": "ref_uncertainty"}
+# ``element``'s default until ``__post_init__`` makes it "candidate m is element m" (a field is never None)
+_EACH_ITS_OWN = np.zeros(0, dtype=np.int64)
 
 
 def _per_candidate(f: dataclasses.Field[Any]) -> bool:
@@ -48,7 +50,7 @@ class Correspondences:
     position: np.ndarray = field(metadata=PER_CANDIDATE)
     distance: np.ndarray = field(metadata=PER_CANDIDATE)
     method: str = ""
-    element: np.ndarray | None = field(default=None, metadata=PER_CANDIDATE)
+    element: np.ndarray = field(default_factory=lambda: _EACH_ITS_OWN, metadata=PER_CANDIDATE)
     query_position: np.ndarray | None = field(default=None, metadata=PER_CANDIDATE)
     ref_uncertainty: Uncertainty | None = None
     n_elements: int | None = None
@@ -64,7 +66,7 @@ class Correspondences:
         object.__setattr__(self, "ref_element", frozen_array(self.ref_element, np.int64, (m,), "ref_element"))
         object.__setattr__(self, "position", frozen_array(self.position, np.float64, (m, 3), "matched position"))
         object.__setattr__(self, "distance", frozen_array(self.distance, np.float64, (m,), "distance"))
-        if self.element is None:
+        if self.element is _EACH_ITS_OWN:
             object.__setattr__(self, "element", np.arange(m, dtype=np.int64))
             object.__setattr__(self, "n_elements", m if self.n_elements is None else self.n_elements)
         else:
@@ -77,9 +79,9 @@ class Correspondences:
         if self.query_uncertainty is not None:
             if self.query_position is None:
                 raise ValueError("correspondences with a query uncertainty per candidate need query positions")
-            rows = self.query_uncertainty.rows
-            if rows not in (1, m):
-                raise ValueError(f"query uncertainty: {rows} rows for {m} candidates (give 1, or one per candidate)")
+            q_rows = self.query_uncertainty.rows
+            if q_rows not in (1, m):
+                raise ValueError(f"query uncertainty: {q_rows} rows for {m} candidates (give 1, or one per candidate)")
 
     @property
     def found(self) -> np.ndarray:
@@ -89,7 +91,7 @@ class Correspondences:
     def element_found(self) -> np.ndarray:
         """Mask of the query elements with at least one correspondence."""
         out = np.zeros(self.n_elements or 0, dtype=bool)
-        out[self.element[self.found]] = True  # type: ignore[index]
+        out[self.element[self.found]] = True
         return out
 
     def take(self, sel: np.ndarray) -> Correspondences:

@@ -83,7 +83,7 @@ class Dataset:
         """One position per element: the point itself, or the facet's centroid."""
         if self.faces is None:
             return self.points
-        return self.points[self.faces].mean(axis=1)
+        return np.asarray(self.points[self.faces].mean(axis=1))
 
     def facet_normals(self, idx: np.ndarray | None = None, unit: bool = False) -> np.ndarray:
         """Normals of the facets (all, or those at ``idx``) by the right-hand rule: twice the facet's area long, or
@@ -97,7 +97,7 @@ class Dataset:
 
     def facet_areas(self, idx: np.ndarray | None = None) -> np.ndarray:
         """Areas of the facets (all, or those at ``idx``)."""
-        return 0.5 * np.linalg.norm(self.facet_normals(idx), axis=1)
+        return np.asarray(0.5 * np.linalg.norm(self.facet_normals(idx), axis=1))
 
     def element_covariance(self) -> np.ndarray:
         """Per-element covariance ``(E,3,3)`` of the attached uncertainty (second moments of a box)."""
@@ -179,7 +179,8 @@ class RegionOfView:
         of ray intersections each)."""
         import open3d as o3d  # imported here: open3d is heavy and only a region-of-view query needs it
 
-        pts = o3d.core.Tensor(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        tensor = o3d.core.Tensor.from_numpy  # the arrays below are fresh copies: sharing them is safe
+        pts = tensor(np.array(points, dtype=np.float32).reshape(-1, 3))
         inside = np.zeros(pts.shape[0], dtype=bool)
         start = 0
         # one scene per part: overlapping closed parts would cancel each other's parity
@@ -190,8 +191,8 @@ class RegionOfView:
             scene = o3d.t.geometry.RaycastingScene()
             faces = self.faces[start:start + n]
             used, local = np.unique(faces, return_inverse=True)
-            scene.add_triangles(o3d.core.Tensor(self.vertices[used].astype(np.float32)),
-                                o3d.core.Tensor(local.reshape(-1, 3).astype(np.uint32)))
+            scene.add_triangles(tensor(self.vertices[used].astype(np.float32)),
+                                tensor(local.reshape(-1, 3).astype(np.uint32)))
             inside |= scene.compute_occupancy(pts).numpy().astype(bool)
             start += n
         return inside

@@ -28,19 +28,19 @@ class Region99:
         """Whether each ``(n,3)`` offset (point minus element position) lies in its element's region."""
         d = np.asarray(offsets, dtype=np.float64) - self.center
         if self.kind == "sphere":
-            return np.linalg.norm(d, axis=-1) <= self.half_axes[..., 0]
+            return np.asarray(np.linalg.norm(d, axis=-1) <= self.half_axes[..., 0])
         local = np.einsum("nji,nj->ni", self.axes, d)
         scaled = np.divide(local, self.half_axes, out=np.full_like(local, np.inf), where=self.half_axes > 0)
         scaled[(self.half_axes == 0) & (np.abs(local) < 1e-15)] = 0.0
         if self.kind == "box":
-            return np.all(np.abs(scaled) <= 1.0, axis=-1)
-        return np.einsum("ni,ni->n", scaled, scaled) <= 1.0
+            return np.asarray(np.all(np.abs(scaled) <= 1.0, axis=-1))
+        return np.asarray(np.einsum("ni,ni->n", scaled, scaled) <= 1.0)
 
     def bounding_radius(self) -> np.ndarray:
         """Radius of a sphere around the element position that holds the whole region (for KD-tree searches)."""
         c = np.linalg.norm(self.center, axis=-1)
         if self.kind == "sphere":
-            return c + self.half_axes[..., 0]
+            return np.asarray(c + self.half_axes[..., 0])
         if self.kind == "box":
-            return c + np.linalg.norm(self.half_axes, axis=-1)
-        return c + self.half_axes.max(axis=-1)
+            return np.asarray(c + np.linalg.norm(self.half_axes, axis=-1))
+        return np.asarray(c + self.half_axes.max(axis=-1))

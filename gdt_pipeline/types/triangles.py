@@ -11,7 +11,7 @@ def triangle_normals(tri: np.ndarray) -> np.ndarray:
 
 def triangle_areas(tri: np.ndarray) -> np.ndarray:
     """Areas of triangles ``(F,3,3)``."""
-    return 0.5 * np.linalg.norm(triangle_normals(tri), axis=1)
+    return np.asarray(0.5 * np.linalg.norm(triangle_normals(tri), axis=1))
 
 
 def triangle_points(tri: np.ndarray, facet: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -20,4 +20,4 @@ def triangle_points(tri: np.ndarray, facet: np.ndarray, u: np.ndarray, v: np.nda
     flip = u + v > 1
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     t = tri[facet]
-    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
+    return np.asarray(t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0]))

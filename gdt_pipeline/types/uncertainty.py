@@ -18,7 +18,7 @@ from .region99 import BOX_99, CHI2_3_99, Region99
 def _psd_factor(cov: np.ndarray) -> np.ndarray:
     """A factor L with L Lᵀ = Σ for symmetric positive semi-definite Σ (eigen-based: works when Σ is singular)."""
     w, v = np.linalg.eigh(cov)
-    return v * np.sqrt(np.clip(w, 0.0, None))[..., None, :]
+    return np.asarray(v * np.sqrt(np.clip(w, 0.0, None))[..., None, :])
 
 
 def _gauss_pdf_many(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -27,14 +27,15 @@ def _gauss_pdf_many(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
     inv = np.linalg.inv(chol)
     y = np.einsum("...ij,...sj->...si", inv, d)
     logdet = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(axis=-1)
-    return np.exp(-0.5 * np.einsum("...si,...si->...s", y, y) - 0.5 * logdet[..., None] - 1.5 * np.log(2 * np.pi))
+    exponent = -0.5 * np.einsum("...si,...si->...s", y, y) - 0.5 * logdet[..., None] - 1.5 * np.log(2 * np.pi)
+    return np.asarray(np.exp(exponent))
 
 
 def _gauss_pdf(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
     chol = np.linalg.cholesky(cov)
     y = np.linalg.solve(chol, d[..., None])[..., 0]
     logdet = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(axis=-1)
-    return np.exp(-0.5 * np.einsum("...i,...i->...", y, y) - 0.5 * logdet - 1.5 * np.log(2 * np.pi))
+    return np.asarray(np.exp(-0.5 * np.einsum("...i,...i->...", y, y) - 0.5 * logdet - 1.5 * np.log(2 * np.pi)))
 
 
 @dataclass(frozen=True)
@@ -107,7 +108,7 @@ class GaussianUncertainty:
     def sample(self, n: int, rng: np.random.Generator, k: int = 1) -> np.ndarray:
         """``k`` random offsets per element, ``(n,k,3)``."""
         factor = np.broadcast_to(_psd_factor(self.cov), (n, 3, 3))
-        return np.einsum("nij,nkj->nki", factor, rng.standard_normal((n, k, 3)))
+        return np.asarray(np.einsum("nij,nkj->nki", factor, rng.standard_normal((n, k, 3))))
 
     def pdf(self, offsets: np.ndarray) -> np.ndarray:
         """Density of each element's distribution at an ``(n,3)`` offset from its position."""
@@ -161,7 +162,7 @@ class BoxUncertainty:
         if self.rotation is None:
             return diag
         rot = np.broadcast_to(self.rotation, (n, 3, 3))
-        return rot @ diag @ np.swapaxes(rot, 1, 2)
+        return np.asarray(rot @ diag @ np.swapaxes(rot, 1, 2))
 
     def summary(self, n: int) -> np.ndarray:
         """RMS standard deviation of the box per element, sqrt(Σh²/9)."""
@@ -211,7 +212,7 @@ class BoxUncertainty:
         """``k`` random offsets per element, ``(n,k,3)``, uniform in each box."""
         broadcast_rows(self.half_widths, n, "box half-widths")
         local = rng.uniform(-1.0, 1.0, (n, k, 3)) * np.broadcast_to(self.half_widths, (n, 3))[:, None, :]
-        return np.einsum("nij,nkj->nki", self.axes(n), local)
+        return np.asarray(np.einsum("nij,nkj->nki", self.axes(n), local))
 
     def pdf(self, offsets: np.ndarray) -> np.ndarray:
         """Density at an ``(n,3)`` offset: 1/volume inside the box, 0 outside."""
@@ -276,7 +277,7 @@ class MixtureUncertainty:
 
     def summary(self, n: int) -> np.ndarray:
         """RMS standard deviation per element."""
-        return np.sqrt(np.trace(self.covariance(n), axis1=1, axis2=2) / 3.0)
+        return np.asarray(np.sqrt(np.trace(self.covariance(n), axis1=1, axis2=2) / 3.0))
 
     def take(self, idx: np.ndarray) -> MixtureUncertainty:
         """The uncertainty of the elements ``idx``."""
@@ -340,20 +341,20 @@ class MixtureUncertainty:
         comp = (rng.random((n, k, 1)) > cum[:, None, :-1]).sum(axis=2)
         rows = np.arange(n)[:, None]
         factor = _psd_factor(cov[rows, comp])
-        return mu[rows, comp] + np.einsum("nkij,nkj->nki", factor, rng.standard_normal((n, k, 3)))
+        return np.asarray(mu[rows, comp] + np.einsum("nkij,nkj->nki", factor, rng.standard_normal((n, k, 3))))
 
     def pdf(self, offsets: np.ndarray) -> np.ndarray:
         """Density at an ``(n,3)`` offset: Σ w_k N(d; μ_k, C_k)."""
         d = np.asarray(offsets, dtype=np.float64)
         w, mu, cov = self.components(len(d))
-        return np.einsum("nk,nk->n", w, _gauss_pdf(d[:, None, :] - mu, cov))
+        return np.asarray(np.einsum("nk,nk->n", w, _gauss_pdf(d[:, None, :] - mu, cov)))
 
     def pdf_many(self, offsets: np.ndarray) -> np.ndarray:
         """Densities at ``(n,S,3)`` offsets, S per element (one factorisation per component)."""
         d = np.asarray(offsets, dtype=np.float64)
         w, mu, cov = self.components(len(d))
         rel = d[:, None, :, :] - mu[:, :, None, :]  # (n, K, S, 3)
-        return np.einsum("nk,nks->ns", w, _gauss_pdf_many(rel, cov))
+        return np.asarray(np.einsum("nk,nks->ns", w, _gauss_pdf_many(rel, cov)))
 
     def region99(self, n: int) -> Region99:
         """A sphere around the element holding at least 99 %: it encloses every component's 99 % ellipsoid."""

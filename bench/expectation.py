@@ -1,4 +1,4 @@
-"""Neighbourhood expectation on the ToF scene family: per scene the default chain with ``auto``'s ``expectation:
+"""Neighbourhood expectation on the ToF scene suite: per scene the default chain with ``auto``'s ``expectation:
 point`` (the per-point test), the same chain with ``expectation: neighbourhood`` (what the default ``auto`` does
 on these clouds), and the latter with the ``tof_low_cost`` preset
 self-calibrated instead of the true profile; change F1 of each, the recall on thin added parts (≤ 5 cm across),
@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from family_bench import run_family
+from suite_bench import run_suite
 
-from gdt_pipeline.evaluation.family_scoring import score_scene
+from gdt_pipeline.evaluation.suite_scoring import score_scene
 from gdt_pipeline.runner import run_workflow
-from gdt_pipeline.simulation.family import PROFILE_FILE, make_family_scene
+from gdt_pipeline.simulation.suite import PROFILE_FILE, make_suite_scene
 
 POOL = "  - uses: auto\n    role: as-is\n    with: {expectation: neighbourhood}\n"
 PER_POINT = "  - uses: auto\n    role: as-is\n    with: {expectation: point}\n"
@@ -67,7 +67,7 @@ def thin_recall(root: Path, twin: Path) -> tuple[int, int]:
 
 def run_scene(root: Path, seed: int, registry: object) -> dict:
     """One scene: F1 per variant, the truth-tuned C2C, thin-part recall per variant."""
-    scene = make_family_scene("tof", root, seed)
+    scene = make_suite_scene("tof", root, seed)
     row: dict = {"seed": seed, "f1": {}, "seconds": {}, "thin": {}}
     for name, (profile, pooled) in VARIANTS.items():
         wf = _variant(scene.workflow, name, profile, pooled)
@@ -111,4 +111,4 @@ def print_summary(rows: list[dict]) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(run_family(__doc__, 9043, "out/bench/expectation", run_scene, _line, print_summary))
+    sys.exit(run_suite(__doc__, 9043, "out/bench/expectation", run_scene, _line, print_summary))

@@ -1,10 +1,10 @@
 """Speed of the neighbourhood expectation against py4dgeo's M3C2 on the same ToF clouds, side by side.
 
-Per ToF family scene (``--seed``, ``--scenes``) and run, each in a child process: ``gdt run`` of the scene's
+Per ToF suite scene (``--seed``, ``--scenes``) and run, each in a child process: ``gdt run`` of the scene's
 chain with ``auto``'s ``expectation: point`` (the per-point test) and with ``expectation: neighbourhood``, wall seconds
 (reading, every stage, writing the twin) and peak RSS; and py4dgeo's M3C2 with its documented default cylinder
 (about 30 points, normals at twice that) on the same scan points against the CAD sampled at their spacing on the
-facets facing a station (what ``gdt eval --family`` gives it), its own seconds and peak RSS. Prints medians over
+facets facing a station (what ``gdt eval --suite`` gives it), its own seconds and peak RSS. Prints medians over
 ``--repeats`` runs, points/s, bytes per point and the ratio of gdt's points/s to M3C2's.
 
     .venv/bin/python bench/expectation_speed.py [--scenes 3] [--seed 9043] [--repeats 3]
@@ -35,7 +35,7 @@ def _workflow(scene: Path, name: str, extra: str) -> Path:
 
 
 def m3c2_child(scene: Path) -> None:
-    """(Child mode) py4dgeo M3C2 of the scene's E1 scans against its E0 CAD, as the family evaluation runs it."""
+    """(Child mode) py4dgeo M3C2 of the scene's E1 scans against its E0 CAD, as the suite evaluation runs it."""
     from gdt_pipeline.evaluation.peers import m3c2
     from gdt_pipeline.evaluation.twin_points import sample_sets
     from gdt_pipeline.plugins import load_registry
@@ -66,11 +66,11 @@ def main() -> None:
     args = ap.parse_args()
     if args.m3c2_child:
         return m3c2_child(args.m3c2_child)
-    from gdt_pipeline.evaluation.family import scene_seed
-    from gdt_pipeline.simulation.family import make_family_scene
+    from gdt_pipeline.evaluation.suite import scene_seed
+    from gdt_pipeline.simulation.suite import make_suite_scene
 
     for k in range(args.scenes):
-        scene = make_family_scene("tof", args.out / f"scene_{k:03d}", scene_seed(args.seed, k))
+        scene = make_suite_scene("tof", args.out / f"scene_{k:03d}", scene_seed(args.seed, k))
         runs: dict[str, list[tuple[float, float]]] = {name: [] for name in (*VARIANTS, "M3C2")}
         for _ in range(args.repeats):
             for name, extra in VARIANTS.items():

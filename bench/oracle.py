@@ -1,4 +1,4 @@
-"""An upper bound for change detection on family scenes: an oracle that knows the true segmentation. Every scan
+"""An upper bound for change detection on suite scenes: an oracle that knows the true segmentation. Every scan
 point's noise-free offset from the CAD along its beam is pooled over the points its ray hit on the same true part
 face (object and facet). A face is called changed when its mean offset exceeds 3 standard errors of that pooled
 mean (its points' range σ over √n). The changed points of such faces are found, the rest missed; nothing unchanged
@@ -44,7 +44,7 @@ def oracle_found(offset: np.ndarray, truth: dict) -> np.ndarray:
 
 
 def scene_f1(root: Path) -> float:
-    """The oracle's change F1 over all E1 scans of one family scene."""
+    """The oracle's change F1 over all E1 scans of one suite scene."""
     meta = json.loads((root / "scene.json").read_text(encoding="utf-8"))
     cad_scene = raycasting_scene([trimesh.load(p, force="mesh") for p in sorted(root.glob("cad_*.obj"))])
     tp = flagged = changed = 0
@@ -63,7 +63,7 @@ def main(argv: list[str]) -> int:
         return 2
     scenes = sorted(p for p in Path(argv[0]).glob("scene_*") if (p / "scene.json").is_file())
     if not scenes:
-        print(f"no family scenes (scene_*/scene.json) under {argv[0]}")
+        print(f"no suite scenes (scene_*/scene.json) under {argv[0]}")
         return 2
     scores = []
     for root in scenes:

@@ -1,4 +1,4 @@
-"""Self-calibration on the ToF scene family: per scene the default chain run three ways, with the scanner's true
+"""Self-calibration on the ToF scene suite: per scene the default chain run three ways, with the scanner's true
 profile, with the ``tof_low_cost`` preset as it is, and with the preset self-calibrated against the scene's CAD
 (``sensor_model`` ``self_calibrate: true``); change F1 of each against the truth, and the fitted scale against the
 true one. Scenes are seeded from SEED, which no test and no parameter choice looked at.
@@ -14,11 +14,11 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from family_bench import run_family
+from suite_bench import run_suite
 
-from gdt_pipeline.evaluation.family_scoring import score_scene
+from gdt_pipeline.evaluation.suite_scoring import score_scene
 from gdt_pipeline.runner import run_workflow
-from gdt_pipeline.simulation.family import PROFILE_FILE, make_family_scene
+from gdt_pipeline.simulation.suite import PROFILE_FILE, make_suite_scene
 
 VARIANTS = {
     "true profile": None,
@@ -49,7 +49,7 @@ def _fitted(twin: Path) -> dict | None:
 
 def run_scene(root: Path, seed: int, registry: object) -> dict:
     """One scene: F1 of gdt per variant, the true scale and the fitted one."""
-    scene = make_family_scene("tof", root, seed)
+    scene = make_suite_scene("tof", root, seed)
     true_scale = yaml.safe_load((root / PROFILE_FILE).read_text())["range_sigma"][0] / 0.002
     row: dict = {"seed": seed, "true_scale": true_scale, "f1": {}, "seconds": {}}
     for name, params in VARIANTS.items():
@@ -83,4 +83,4 @@ def print_summary(rows: list[dict]) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(run_family(__doc__, 7717, "out/bench/self_calibration", run_scene, _line, print_summary))
+    sys.exit(run_suite(__doc__, 7717, "out/bench/self_calibration", run_scene, _line, print_summary))

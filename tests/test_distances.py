@@ -169,14 +169,14 @@ def _unchanged_pairs(n: int, rng: np.random.Generator, ref_unc, q_unc) -> tuple[
     return rec, ref
 
 
-@pytest.mark.parametrize("measure,ref_family", [("bhattacharyya", "gaussian"), ("bhattacharyya", "box"),
+@pytest.mark.parametrize("measure,ref_model", [("bhattacharyya", "gaussian"), ("bhattacharyya", "box"),
                                                 ("hotelling", "gaussian"), ("welch_m3c2", "gaussian")])
-def test_calibrated_threshold_achieves_its_false_alarm_rate(registry, measure: str, ref_family: str) -> None:
+def test_calibrated_threshold_achieves_its_false_alarm_rate(registry, measure: str, ref_model: str) -> None:
     rng = np.random.default_rng(21)
-    n = 40_000 if ref_family == "box" else 100_000
+    n = 40_000 if ref_model == "box" else 100_000
     rots = Rotation.random(n, random_state=4).as_matrix()
     q_unc = GaussianUncertainty(rots @ np.diag([4e-4, 1e-4, 2.5e-5]) @ np.swapaxes(rots, 1, 2))
-    ref_unc = (GaussianUncertainty.isotropic(0.006) if ref_family == "gaussian"
+    ref_unc = (GaussianUncertainty.isotropic(0.006) if ref_model == "gaussian"
                else BoxUncertainty(np.array([[0.01, 0.01, 0.01]])))
     rec, ref = _unchanged_pairs(n, rng, ref_unc, q_unc)
     scores, _ = _pairs_context(registry, measure, {}, rec, ref)

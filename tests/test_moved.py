@@ -73,7 +73,7 @@ def test_the_moved_record_is_written_and_read_back_with_usd() -> None:
 
 
 def test_moved_records_are_scored_against_the_true_displacements() -> None:
-    from gdt_pipeline.evaluation.family_scoring import moved_scores
+    from gdt_pipeline.evaluation.suite_scoring import moved_scores
 
     def seg(k: int, item: str | None, shift: list[float] | None) -> Segment:
         return Segment(id=k, kind="new", centroid=np.zeros(3), lower=np.zeros(3), upper=np.ones(3), mean_score=9.0,

@@ -18,8 +18,8 @@ from scipy.spatial.transform import Rotation
 from gdt_pipeline import InputError
 from gdt_pipeline.audit import audit_twin
 from gdt_pipeline.runner import read_datasets, run_workflow
-from gdt_pipeline.simulation.family_workflow import STAGES
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
+from gdt_pipeline.simulation.suite_workflow import STAGES
 from twin_store import TwinStore
 
 STATIONS = (  # (name, eye, target, yaw of the scanner's frame in degrees)
@@ -42,7 +42,7 @@ epochs:
 
 
 def workflow(twin: str, inputs: str) -> str:
-    """The family scenes' default chain (the tof_low_cost preset) over the CAD cube and the given E1 inputs."""
+    """The suite scenes' default chain (the tof_low_cost preset) over the CAD cube and the given E1 inputs."""
     return HEADER.format(twin=twin, inputs=inputs) + STAGES.replace("PROFILE", "tof_low_cost")
 
 

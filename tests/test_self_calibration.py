@@ -10,8 +10,8 @@ import trimesh
 
 from gdt_pipeline import Composite
 from gdt_pipeline.sensors import PRESETS
-from gdt_pipeline.simulation.family import scaled_profile
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
+from gdt_pipeline.simulation.suite import scaled_profile
 from stages.uncertainty.self_calibration import FitData, calibrate_profile
 from stages.uncertainty.sensor_model import sensor_survey
 from tests.rov_helpers import cad_item, plant_room, stage_ctx

@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict
 from gdt_pipeline import GdtError, StageSpec, hookimpl
 from gdt_pipeline.audit import audit_twin
 from gdt_pipeline.runner import TilingOptions, run_workflow
-from gdt_pipeline.simulation.family import make_family_scene
+from gdt_pipeline.simulation.suite import make_suite_scene
 from twin_store import TwinStore
 
 from .conftest import run_gdt
@@ -24,7 +24,7 @@ TILE_ELEMENTS = 25_000
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return make_family_scene("precise", tmp_path_factory.mktemp("tiles") / "scene", SCENE_SEED).workflow
+    return make_suite_scene("precise", tmp_path_factory.mktemp("tiles") / "scene", SCENE_SEED).workflow
 
 
 @pytest.fixture(scope="module")

@@ -120,7 +120,7 @@ def simulate(meshes: tuple[Path, ...], stations: tuple[str, ...], target: str, p
         click.echo(f"{written['scan']}: {len(scan.points)} points from {text} (truth: {written['truth'].name})")
 
 
-FAMILIES = ("tof", "precise", "precise-mesh")  # gdt_pipeline.simulation.family.FAMILIES, named without importing it
+SUITES = ("tof", "precise", "precise-mesh")  # gdt_pipeline.simulation.suite.SUITES, named without importing it
 
 
 @click.command("eval")
@@ -130,38 +130,41 @@ FAMILIES = ("tof", "precise", "precise-mesh")  # gdt_pipeline.simulation.family.
 @click.option("--report", "report_dir", type=click.Path(path_type=Path),
               help="Markdown report with plots (default: out/eval/<workflow name>/).")
 @click.option("--peers", default="c2c,m3c2,m3c2ep", show_default=True,
-              help="Peers to run side by side (comma list of c2c, m3c2, m3c2ep; 'none' for none). With --family the "
+              help="Peers to run side by side (comma list of c2c, m3c2, m3c2ep; 'none' for none). With --suite the "
                    "default is c2c,m3c2.")
 @click.option("--generate/--no-generate", default=True, show_default=True,
               help="Generate a bundled scene (seed 0) when the workflow's data is missing.")
 @click.option("--fusion", type=click.Choice(["most_reliable", "keep_unchanged", "keep_reference", "replace_in_view"]),
               help="Run with this fusion policy instead of the workflow's (twin: <twin>_<fusion>), to compare "
                    "the composites.")
-@click.option("--family", type=click.Choice(FAMILIES),
-              help="Instead of WORKFLOW: generate random scenes of this family, run each one's default workflow and "
+@click.option("--suite", type=click.Choice(SUITES),
+              help="Instead of WORKFLOW: generate random scenes of this suite, run each one's default workflow and "
                    "score them all (mean and worst per method).")
+# the suites were called scene families until 0.1: earlier notes and scripts say --family
+@click.option("--family", "suite_alias", type=click.Choice(SUITES), hidden=True)
 @click.option("--scenes", default=20, show_default=True, type=click.IntRange(min=1),
-              help="With --family: how many scenes.")
+              help="With --suite: how many scenes.")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0),
-              help="With --family: scene k is generated from the seed (SEED, k).")
+              help="With --suite: scene k is generated from the seed (SEED, k).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
-              help="With --family: where the scenes and their twins go (default: out/family/<family>/).")
+              help="With --suite: where the scenes and their twins go (default: out/suite/<suite>/).")
 @click.pass_context
 def eval_cmd(ctx: click.Context, workflow: Path | None, twin: Path | None, json_path: Path | None,
-             report_dir: Path | None, peers: str, generate: bool, fusion: str | None, family: str | None, scenes: int,
-             seed: int, out_dir: Path | None) -> None:
+             report_dir: Path | None, peers: str, generate: bool, fusion: str | None, suite: str | None,
+             suite_alias: str | None, scenes: int, seed: int, out_dir: Path | None) -> None:
     """Run WORKFLOW on a simulated scene and score every epoch against the scene's ground truth, with the peers.
 
-    With --family NAME (and no WORKFLOW): score N random scenes of a family (tof, precise, precise-mesh) the same
+    With --suite NAME (and no WORKFLOW): score N random scenes of a suite (tof, precise, precise-mesh) the same
     way and report per method the mean and worst change F1, removal recall by visible area and false removals."""
-    if family is not None:
+    suite = suite or suite_alias
+    if suite is not None:
         if workflow is not None or twin is not None or report_dir is not None or fusion is not None:
-            raise click.UsageError("--family generates its own scenes: give no WORKFLOW, --twin, --report or --fusion")
+            raise click.UsageError("--suite generates its own scenes: give no WORKFLOW, --twin, --report or --fusion")
         default = ctx.get_parameter_source("peers") is click.core.ParameterSource.DEFAULT
-        eval_family(family, scenes, seed, out_dir, "c2c,m3c2" if default else peers, json_path)
+        eval_suite(suite, scenes, seed, out_dir, "c2c,m3c2" if default else peers, json_path)
         return
     if workflow is None:
-        raise click.UsageError("give a WORKFLOW to evaluate, or --family NAME to score a family of random scenes")
+        raise click.UsageError("give a WORKFLOW to evaluate, or --suite NAME to score a suite of random scenes")
     eval_workflow(workflow, twin, json_path, report_dir, peers, generate, fusion)
 
 
@@ -176,30 +179,30 @@ def parse_peers(peers: str) -> tuple[str, ...]:
     return chosen
 
 
-def eval_family(family: str, scenes: int, seed: int, out_dir: Path | None, peers: str, json_path: Path | None
+def eval_suite(suite: str, scenes: int, seed: int, out_dir: Path | None, peers: str, json_path: Path | None
                 ) -> None:
-    """``gdt eval --family``: score the scenes, print the table, write JSON and a markdown table."""
-    from ..evaluation.family import evaluate_family
-    from ..evaluation.family_report import family_markdown, format_family_table
+    """``gdt eval --suite``: score the scenes, print the table, write JSON and a markdown table."""
+    from ..evaluation.suite import evaluate_suite
+    from ..evaluation.suite_report import format_suite_table, suite_markdown
 
     chosen = parse_peers(peers)
-    out = out_dir or Path("out") / "family" / family
-    err_console.print(f"{scenes} scene(s) of the {family!r} family (seed {seed}) into {out} ...")
+    out = out_dir or Path("out") / "suite" / suite
+    err_console.print(f"{scenes} scene(s) of the {suite!r} suite (seed {seed}) into {out} ...")
     def say(msg: str) -> None:
         err_console.print(msg, highlight=False, soft_wrap=True)  # a scene's progress line stays one line
 
     try:
-        result = evaluate_family(family, scenes=scenes, seed=seed, out=out, peers=chosen,
+        result = evaluate_suite(suite, scenes=scenes, seed=seed, out=out, peers=chosen,
                                  registry=installed_registry(), progress=say)
     except FileExistsError as exc:  # --out names a folder that holds something else: refuse, do not delete it
         raise click.ClickException(str(exc)) from exc
-    click.echo(format_family_table(result))
+    click.echo(format_suite_table(result))
     text = json.dumps(result, indent=2, default=float) + "\n"
     for path in (out / "results.json", json_path):
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(text, encoding="utf-8")
-    (out / "results.md").write_text(family_markdown(result), encoding="utf-8")
+    (out / "results.md").write_text(suite_markdown(result), encoding="utf-8")
     click.echo(f"results written to {json_path or out / 'results.json'}; markdown table: {out / 'results.md'}")
 
 

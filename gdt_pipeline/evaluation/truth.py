@@ -94,7 +94,7 @@ def truth_meshes(scene_dir: Path, states: dict[str, str]) -> dict[str, Any]:
     for name, state in states.items():
         if state in ("removed", "absent"):
             continue
-        # the as-is place first: a family scene's moved part has both its CAD place and where it stands now
+        # the as-is place first: a suite scene's moved part has both its CAD place and where it stands now
         for stem in (f"truth_{name}", f"cad_{name}"):
             path = scene_dir / f"{stem}.obj"
             if path.is_file():

@@ -1,4 +1,4 @@
-"""The parts of the random scene family, as watertight trimesh solids with outward normals (metres, base on z = 0 in
+"""The parts of the random scene suite, as watertight trimesh solids with outward normals (metres, base on z = 0 in
 their own frame): cabinets, pipes, columns and drums, plates, L-brackets, rails and the floor plate; and their
 footprints on the floor (oriented rectangles) with the overlap test the layout uses.
 

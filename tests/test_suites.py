@@ -1,4 +1,4 @@
-"""The random scene family and ``gdt eval --family``: same seed, same files; truth that agrees with the geometry
+"""The random scene suite and ``gdt eval --suite``: same seed, same files; truth that agrees with the geometry
 (removed facets only on removed or moved parts, visible fractions in [0, 1], occlusion lowers them, the simulator's
 hits land where the truth says a station sees); and one small scene scored end to end through the command."""
 
@@ -13,18 +13,18 @@ import trimesh
 from click.testing import CliRunner
 
 from gdt_pipeline.cli import cli
-from gdt_pipeline.cli.lab_commands import FAMILIES as CLI_FAMILIES
-from gdt_pipeline.evaluation.family import scene_seed
-from gdt_pipeline.evaluation.family_report import summarise
-from gdt_pipeline.evaluation.family_scoring import weighted_prf
+from gdt_pipeline.cli.lab_commands import SUITES as CLI_SUITES
 from gdt_pipeline.evaluation.metrics import prf
+from gdt_pipeline.evaluation.suite import scene_seed
+from gdt_pipeline.evaluation.suite_report import summarise
+from gdt_pipeline.evaluation.suite_scoring import weighted_prf
 from gdt_pipeline.runner import read_dataset
-from gdt_pipeline.simulation import family as family_mod
-from gdt_pipeline.simulation.family import FAMILIES, make_family_scene
-from gdt_pipeline.simulation.family_layout import draw_layout
-from gdt_pipeline.simulation.family_shapes import box, rectangles_overlap
-from gdt_pipeline.simulation.family_truth import cad_facet_truth
+from gdt_pipeline.simulation import suite as suite_mod
 from gdt_pipeline.simulation.scanner import ScannerSpec
+from gdt_pipeline.simulation.suite import SUITES, make_suite_scene
+from gdt_pipeline.simulation.suite_layout import draw_layout
+from gdt_pipeline.simulation.suite_shapes import box, rectangles_overlap
+from gdt_pipeline.simulation.suite_truth import cad_facet_truth
 from gdt_pipeline.workflow import load_workflow
 
 SEED = 31  # tests only: the published figures use other seeds
@@ -36,27 +36,27 @@ def _files(root: Path) -> dict[str, bytes]:
 
 @pytest.fixture(scope="module")
 def mesh_scene(tmp_path_factory):
-    """A precise-mesh scene (the family that exercises the most: meshes, per-facet truth, Poisson)."""
-    return make_family_scene("precise-mesh", tmp_path_factory.mktemp("mesh"), SEED)
+    """A precise-mesh scene (the suite that exercises the most: meshes, per-facet truth, Poisson)."""
+    return make_suite_scene("precise-mesh", tmp_path_factory.mktemp("mesh"), SEED)
 
 
 @pytest.fixture(scope="module")
 def tof_scene(tmp_path_factory):
     """A ToF point scene."""
-    return make_family_scene("tof", tmp_path_factory.mktemp("tof"), SEED)
+    return make_suite_scene("tof", tmp_path_factory.mktemp("tof"), SEED)
 
 
 def test_the_same_seed_writes_the_same_files(mesh_scene, tmp_path: Path) -> None:
-    again = make_family_scene("precise-mesh", tmp_path / "again", SEED)
+    again = make_suite_scene("precise-mesh", tmp_path / "again", SEED)
     first, second = _files(mesh_scene.root), _files(again.root)
     assert first.keys() == second.keys() and {"workflow.yaml", "truth_E1.npz", "sensor.yaml"} <= first.keys()
     assert [n for n in first if first[n] != second[n]] == []
-    other = make_family_scene("precise-mesh", tmp_path / "other", SEED + 1)
+    other = make_suite_scene("precise-mesh", tmp_path / "other", SEED + 1)
     assert _files(other.root)["truth_E1.npz"] != first["truth_E1.npz"]
 
 
-def test_the_cli_knows_every_family_and_scene_seeds_are_independent() -> None:
-    assert set(CLI_FAMILIES) == set(FAMILIES)
+def test_the_cli_knows_every_suite_and_scene_seeds_are_independent() -> None:
+    assert set(CLI_SUITES) == set(SUITES)
     seeds = {scene_seed(s, k) for s in (1000, 1001) for k in range(20)}
     assert len(seeds) == 40 and scene_seed(1000, 3) == scene_seed(1000, 3)
 
@@ -159,10 +159,10 @@ def test_weighted_scores_are_the_plain_ones_for_points_and_summaries_take_mean_a
     assert s["false"]["worst"] == 0.02
 
 
-def test_eval_family_scores_a_small_scene_end_to_end(tmp_path: Path, monkeypatch) -> None:
-    monkeypatch.setattr(family_mod, "POINT_BUDGET", (20_000, 25_000))  # a tiny scene: the test's time, not the truth
-    out = tmp_path / "fam"
-    res = CliRunner().invoke(cli, ["eval", "--family", "precise", "--scenes", "1", "--seed", str(SEED), "--peers",
+def test_eval_suite_scores_a_small_scene_end_to_end(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(suite_mod, "POINT_BUDGET", (20_000, 25_000))  # a tiny scene: the test's time, not the truth
+    out = tmp_path / "suite_spec"
+    res = CliRunner().invoke(cli, ["eval", "--suite", "precise", "--scenes", "1", "--seed", str(SEED), "--peers",
                                    "c2c", "--out", str(out), "--json", str(tmp_path / "r.json")])
     assert res.exit_code == 0, res.output
     result = json.loads((tmp_path / "r.json").read_text())
@@ -186,4 +186,4 @@ def test_eval_family_scores_a_small_scene_end_to_end(tmp_path: Path, monkeypatch
     assert s["gdt"]["f1"]["mean"] == s["gdt"]["f1"]["worst"] == m["gdt"]["f1"]
     assert s["c2c_reverse"]["removal"]["mean"] == rem["methods"]["c2c_reverse"]["recall"]
     assert "| **gdt (default workflow)** |" in (out / "results.md").read_text()
-    assert "family 'precise': 1 scene(s)" in res.output
+    assert "suite 'precise': 1 scene(s)" in res.output

@@ -1,4 +1,4 @@
-"""The figures of ``gdt eval --family`` over its scenes: per method the mean and the worst change F1, removal recall
+"""The figures of ``gdt eval --suite`` over its scenes: per method the mean and the worst change F1, removal recall
 by visible area and false removals by area; as a terminal table and as a markdown table for the docs."""
 
 from __future__ import annotations
@@ -45,12 +45,12 @@ def _cells(s: dict[str, Any] | None) -> tuple[str, str]:
     return f"{s['mean']:.4f}", f"{s['worst']:.4f}"
 
 
-def format_family_table(result: dict[str, Any]) -> str:
+def format_suite_table(result: dict[str, Any]) -> str:
     """The summary as a plain-text table, with the run's time per scene."""
     rows = result["rows"]
     per_scene = np.mean([r["seconds"]["total"] for r in rows]) if rows else 0.0
     head = f"{'method':<32}" + "".join(f" {t + ' mean':>22} {'worst':>8}" for _, t in COLUMNS)
-    lines = [f"family {result['family']!r}: {result['scenes']} scene(s), seed {result['seed']}, "
+    lines = [f"suite {result['suite']!r}: {result['scenes']} scene(s), seed {result['seed']}, "
              f"{per_scene:.1f} s per scene ({result['out']})", head]
     for s in result["summary"].values():
         cells = "".join(f" {_cells(s[c])[0]:>22} {_cells(s[c])[1]:>8}" for c, _ in COLUMNS)
@@ -73,10 +73,10 @@ def moved_line(rows: list[dict[str, Any]]) -> str:
     return text + f"; moved records naming a part that did not move: {wrong}"
 
 
-def family_markdown(result: dict[str, Any]) -> str:
+def suite_markdown(result: dict[str, Any]) -> str:
     """The summary as a markdown table (for docs/evaluation.md), with the command that reproduces it."""
     peers = ",".join(result["peers"]) or "none"
-    lines = [f"`gdt eval --family {result['family']} --scenes {result['scenes']} --seed {result['seed']} "
+    lines = [f"`gdt eval --suite {result['suite']} --scenes {result['scenes']} --seed {result['seed']} "
              f"--peers {peers}`", "",
              "| method | F1 mean | F1 worst | removal recall mean | worst | false removals mean | worst |",
              "| --- | --- | --- | --- | --- | --- | --- |"]

@@ -1,4 +1,4 @@
-"""Random layouts of the scene family: which parts stand where on the floor plate (non-overlapping footprints), and
+"""Random layouts of the scene suite: which parts stand where on the floor plate (non-overlapping footprints), and
 what changed between the CAD (E0) and the as-is scene (E1): parts added, removed and moved.
 
 Sizes scale with the scene's side ``L`` (itself scaled to the stations' range), except the pipes' and cylinders'
@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .family_shapes import box, channel_rail, cylinder, floor_plate, footprint, l_bracket, placed, rectangles_overlap
+from .suite_shapes import box, channel_rail, cylinder, floor_plate, footprint, l_bracket, placed, rectangles_overlap
 
 KINDS = ("cabinet", "pipe", "cylinder", "plate", "panel", "bracket", "rail")
 KIND_WEIGHTS = (0.2, 0.2, 0.15, 0.1, 0.1, 0.15, 0.1)

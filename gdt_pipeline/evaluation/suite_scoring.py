@@ -1,4 +1,4 @@
-"""One family scene's twin scored against its truth: change F1 (per point; per facet weighted by area for mesh
+"""One suite scene's twin scored against its truth: change F1 (per point; per facet weighted by area for mesh
 scans) for the workflow and the peers on the same points, and removal by visible area for the workflow and a
 reverse C2C.
 
@@ -68,7 +68,7 @@ class SceneScans:
 
 
 def read_scans(wf: Any, sets: dict, registry: Registry) -> SceneScans:
-    """Every E1 scan of a family scene with its truth: per point, or per facet (changed share, area) for meshes."""
+    """Every E1 scan of a suite scene with its truth: per point, or per facet (changed share, area) for meshes."""
     out = SceneScans()
     epoch = next(e for e in wf.model.epochs if e.id == "E1")
     for k, inp in enumerate(epoch.inputs):
@@ -175,7 +175,7 @@ def removal_scores(et: dict[str, Any], sets: dict, points: np.ndarray) -> dict[s
 
 def score_scene(workflow: Path, twin: Path, registry: Registry, peers: tuple[str, ...], rng: np.random.Generator,
                 say: Any) -> dict[str, Any]:
-    """Change F1 per method and removal by area of one family scene's twin, against the scene's truth."""
+    """Change F1 per method and removal by area of one suite scene's twin, against the scene's truth."""
     import json
 
     wf = load_workflow(workflow, registry)

@@ -1,4 +1,4 @@
-"""``gdt eval --family``: generate N random scenes of a family, run each scene's default workflow, score every twin
+"""``gdt eval --suite``: generate N random scenes of a suite, run each scene's default workflow, score every twin
 against the scene's truth with the peers on the same points, and summarise per method over the scenes (mean and
 worst)."""
 
@@ -15,10 +15,10 @@ import numpy as np
 from ..errors import GdtError
 from ..plugins import Registry, load_registry
 from ..runner import run_workflow
-from .family_report import summarise
-from .family_scoring import score_scene
+from .suite_report import summarise
+from .suite_scoring import score_scene
 
-FAMILY_PEERS = ("c2c", "m3c2")  # M3C2-EP runs at tens of core points per second: only when asked for
+SUITE_PEERS = ("c2c", "m3c2")  # M3C2-EP runs at tens of core points per second: only when asked for
 
 
 def scene_seed(seed: int, k: int) -> int:
@@ -27,13 +27,14 @@ def scene_seed(seed: int, k: int) -> int:
 
 
 def _fresh_dir(path: Path) -> None:
-    """Empty a scene directory left by an earlier run (only one that holds a family scene), so no file of another
+    """Empty a scene directory left by an earlier run (only one that holds a suite scene), so no file of another
     draw (a fifth station's scan) survives beside the new scene."""
     if not path.exists():
         return
     meta = path / "scene.json"
-    if not meta.is_file() or "family" not in json.loads(meta.read_text(encoding="utf-8")):
-        raise FileExistsError(f"{path} exists and is not a family scene directory; choose another --out")
+    written = json.loads(meta.read_text(encoding="utf-8")) if meta.is_file() else {}
+    if "suite" not in written and "family" not in written:  # "family": written before the suites were renamed
+        raise FileExistsError(f"{path} exists and is not a suite scene directory; choose another --out")
     shutil.rmtree(path)
 
 
@@ -53,16 +54,16 @@ def _line(k: int, n: int, row: dict[str, Any]) -> str:
             + f" ({row['seconds']['total']:.0f} s)")
 
 
-def evaluate_scene(family: str, k: int, seed: int, out: Path, registry: Registry, peers: tuple[str, ...],
+def evaluate_scene(suite: str, k: int, seed: int, out: Path, registry: Registry, peers: tuple[str, ...],
                    say: Any) -> dict[str, Any]:
     """Generate scene ``k``, run its workflow and score it: its result row."""
-    from ..simulation.family import make_family_scene
+    from ..simulation.suite import make_suite_scene
 
     s = scene_seed(seed, k)
     root = out / f"scene_{k:03d}"
     _fresh_dir(root)
     t0 = time.perf_counter()
-    scene = make_family_scene(family, root, s)
+    scene = make_suite_scene(suite, root, s)
     t1 = time.perf_counter()
     twin = run_workflow(scene.workflow, registry=registry, overwrite=True).twin
     t2 = time.perf_counter()
@@ -75,14 +76,14 @@ def evaluate_scene(family: str, k: int, seed: int, out: Path, registry: Registry
     return row
 
 
-def evaluate_family(family: str, *, scenes: int, seed: int, out: str | Path, peers: tuple[str, ...] = FAMILY_PEERS,
+def evaluate_suite(suite: str, *, scenes: int, seed: int, out: str | Path, peers: tuple[str, ...] = SUITE_PEERS,
                     registry: Registry | None = None, progress: Any = None) -> dict[str, Any]:
-    """Score ``scenes`` random scenes of ``family`` (scene k seeded from (seed, k)): per scene and per method over
+    """Score ``scenes`` random scenes of ``suite`` (scene k seeded from (seed, k)): per scene and per method over
     the scenes (mean and worst change F1, removal recall by visible area, false removals by area)."""
-    from ..simulation.family import FAMILIES
+    from ..simulation.suite import SUITES
 
-    if family not in FAMILIES:
-        raise ValueError(f"unknown scene family {family!r}; choose from {', '.join(FAMILIES)}")
+    if suite not in SUITES:
+        raise ValueError(f"unknown scene suite {suite!r}; choose from {', '.join(SUITES)}")
     if scenes < 1:
         raise ValueError("--scenes must be at least 1")
     say = progress or (lambda msg: None)
@@ -93,12 +94,12 @@ def evaluate_family(family: str, *, scenes: int, seed: int, out: str | Path, pee
     rows, failed = [], []
     for k in range(scenes):
         try:
-            rows.append(evaluate_scene(family, k, seed, out, registry, peers, say))
-        except GdtError as exc:  # a scene the workflow refuses is a finding to report, not the end of the family
+            rows.append(evaluate_scene(suite, k, seed, out, registry, peers, say))
+        except GdtError as exc:  # a scene the workflow refuses is a finding to report, not the end of the suite
             failed.append({"scene": k, "seed": scene_seed(seed, k), "error": str(exc)})
             say(f"scene {k + 1}/{scenes} (seed {scene_seed(seed, k)}): FAILED: {exc}")
             continue
         say(_line(k, scenes, rows[-1]))
-    return {"family": family, "seed": seed, "scenes": scenes, "out": str(out), "peers": list(peers),
+    return {"suite": suite, "seed": seed, "scenes": scenes, "out": str(out), "peers": list(peers),
             "seconds": round(time.perf_counter() - started, 1), "summary": summarise(rows), "rows": rows,
             "failed": failed}

@@ -1,8 +1,8 @@
-"""A family of random plant- and cabin-like scenes with truth by area, for ``gdt eval --family``.
+"""A suite of random plant- and cabin-like scenes with truth by area, for ``gdt eval --suite``.
 
 Each scene: a floor plate with 6–14 parts (cabinets, lying pipes, standing cylinders, plates, panels, L-brackets,
 U-channel rails) in a random non-overlapping layout, its CAD (E0, one OBJ per part), and a simulated scan (E1) of
-the as-is scene in which 1–3 parts were added, 1–2 removed and 1–2 moved, from 1–4 pinhole stations. The families:
+the as-is scene in which 1–3 parts were added, 1–2 removed and 1–2 moved, from 1–4 pinhole stations. The suites:
 
 - ``tof``: a low-cost ToF camera (``tof_low_cost`` × 0.3–1.0, from about the pipe-rack report's 1 mm + 2.5 mm·r²
   to the preset's 2 mm + 8 mm·r² along the beam) 1.5–4.5 m from the scene, point scans;
@@ -24,17 +24,17 @@ from pathlib import Path
 import numpy as np
 
 from ..sensors import PRESETS, SensorProfile, save_profile
-from .family_layout import Layout, draw_layout
-from .family_truth import cad_facet_truth, clean_mesh_scan, mesh_facet_truth, point_changed
-from .family_workflow import write_workflow
 from .objects import write_objects
 from .paper_scene import TOLERANCE
 from .scanner import ScannerSpec, simulate_scan, write_scan
+from .suite_layout import Layout, draw_layout
+from .suite_truth import cad_facet_truth, clean_mesh_scan, mesh_facet_truth, point_changed
+from .suite_workflow import write_workflow
 
 
 @dataclass(frozen=True)
-class FamilySpec:
-    """What a family draws from: the sensor preset and its scale range, the station distances, the scan kind."""
+class SuiteSpec:
+    """What a suite draws from: the sensor preset and its scale range, the station distances, the scan kind."""
 
     preset: str
     noise_scale: tuple[float, float]
@@ -42,10 +42,10 @@ class FamilySpec:
     as_mesh: bool
 
 
-FAMILIES: dict[str, FamilySpec] = {
-    "tof": FamilySpec("tof_low_cost", (0.3, 1.0), (1.5, 4.5), False),
-    "precise": FamilySpec("structured_light", (0.5, 2.0), (0.5, 1.5), False),
-    "precise-mesh": FamilySpec("structured_light", (0.5, 2.0), (0.5, 1.5), True),
+SUITES: dict[str, SuiteSpec] = {
+    "tof": SuiteSpec("tof_low_cost", (0.3, 1.0), (1.5, 4.5), False),
+    "precise": SuiteSpec("structured_light", (0.5, 2.0), (0.5, 1.5), False),
+    "precise-mesh": SuiteSpec("structured_light", (0.5, 2.0), (0.5, 1.5), True),
 }
 POINT_BUDGET = (100_000, 200_000)  # total points of a scene (all stations), drawn uniformly
 PILOT_DENSITY = 1000.0  # points/m² of the ray-count pilot that sets each station's density
@@ -53,10 +53,10 @@ PROFILE_FILE = "sensor.yaml"
 
 
 @dataclass(frozen=True)
-class FamilyScene:
-    """What ``make_family_scene`` wrote."""
+class SuiteScene:
+    """What ``make_suite_scene`` wrote."""
 
-    family: str
+    suite: str
     seed: int
     root: Path
     workflow: Path
@@ -76,10 +76,10 @@ def scaled_profile(preset: str, scale: float) -> SensorProfile:
     return base.model_copy(update={
         "name": f"{preset}_x{scale:.3f}", "range_sigma": [c * scale for c in base.range_sigma],
         "lateral_sigma": [c * scale for c in base.lateral_sigma],
-        "description": f"{base.description} σ scaled by {scale:.3f} (a family scene's true noise)."})
+        "description": f"{base.description} σ scaled by {scale:.3f} (a suite scene's true noise)."})
 
 
-def draw_stations(rng: np.random.Generator, fam: FamilySpec, R: float, L: float
+def draw_stations(rng: np.random.Generator, suite_spec: SuiteSpec, R: float, L: float
                   ) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """1–4 stations around the scene: (eye, target, horizontal fov in degrees), looking at it with some jitter."""
     n = int(rng.integers(1, 5))
@@ -89,7 +89,7 @@ def draw_stations(rng: np.random.Generator, fam: FamilySpec, R: float, L: float
     for i in range(n):
         phi = phi0 + 2 * np.pi * i / n + rng.uniform(-0.35, 0.35)
         elev = np.radians(rng.uniform(25.0, 60.0))
-        dist = float(np.clip(R * rng.uniform(0.8, 1.25), *fam.distance))
+        dist = float(np.clip(R * rng.uniform(0.8, 1.25), *suite_spec.distance))
         eye = centre + dist * np.array([np.cos(elev) * np.cos(phi), np.cos(elev) * np.sin(phi), np.sin(elev)])
         target = centre + rng.normal(0.0, 0.06 * L, 3)
         out.append((eye, target, float(rng.uniform(50.0, 70.0))))
@@ -118,7 +118,7 @@ def _write_meshes(root: Path, layout: Layout) -> list[Path]:
 
 
 def _scan_all(root: Path, layout: Layout, stations: list, specs: list[ScannerSpec], profile: SensorProfile,
-              fam: FamilySpec, pose_files: bool, rng: np.random.Generator) -> tuple[list[Path], np.ndarray]:
+              suite_spec: SuiteSpec, pose_files: bool, rng: np.random.Generator) -> tuple[list[Path], np.ndarray]:
     """Simulate and write every station's scan with its truth; the scan paths and all points' change truth."""
     names = ["floor", *layout.asis]
     asis = [layout.floor, *(p.mesh for p in layout.asis.values())]
@@ -129,8 +129,8 @@ def _scan_all(root: Path, layout: Layout, stations: list, specs: list[ScannerSpe
         changed = point_changed(scan.clean, cad)
         changed_all.append(changed)
         written = write_scan(scan, root / f"scan_E1_s{k}.ply", object_names=names, changed=changed, spec=spec,
-                             as_mesh=fam.as_mesh, mesher="grid")
-        if fam.as_mesh:
+                             as_mesh=suite_spec.as_mesh, mesher="grid")
+        if suite_spec.as_mesh:
             clean_mesh_scan(written["scan"], scan.points)  # drops the facets the reader would (no area)
             with np.load(written["truth"]) as t:
                 arrays = {key: t[key] for key in t.files}
@@ -161,36 +161,36 @@ def _epoch_truth(path: Path, layout: Layout, stations: list, specs: list[Scanner
         np.savez(fh, **truth)
 
 
-def make_family_scene(family: str, out_dir: str | Path, seed: int) -> FamilyScene:
-    """Write one random scene of ``family`` (see FAMILIES) with its truth and workflow into ``out_dir``."""
-    if family not in FAMILIES:
-        raise ValueError(f"unknown scene family {family!r}; choose from {', '.join(FAMILIES)}")
-    fam = FAMILIES[family]
+def make_suite_scene(suite: str, out_dir: str | Path, seed: int) -> SuiteScene:
+    """Write one random scene of ``suite`` (see SUITES) with its truth and workflow into ``out_dir``."""
+    if suite not in SUITES:
+        raise ValueError(f"unknown scene suite {suite!r}; choose from {', '.join(SUITES)}")
+    suite_spec = SUITES[suite]
     root = Path(out_dir)
     root.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    scale = float(rng.uniform(*fam.noise_scale))
-    profile = scaled_profile(fam.preset, scale)
-    R = float(rng.uniform(*fam.distance))
+    scale = float(rng.uniform(*suite_spec.noise_scale))
+    profile = scaled_profile(suite_spec.preset, scale)
+    R = float(rng.uniform(*suite_spec.distance))
     L = R * float(rng.uniform(0.55, 0.8))
     pose_files = bool(rng.random() < 0.5)
     # a mesh scan has two facets per point: half the points keep its elements (and run time) at a point scan's
-    budget = float(rng.uniform(*POINT_BUDGET)) / (2.0 if fam.as_mesh else 1.0)
+    budget = float(rng.uniform(*POINT_BUDGET)) / (2.0 if suite_spec.as_mesh else 1.0)
     # moves of 1–10 × the range σ at the scene's range, but not under the truth's own tolerance: a smaller move
     # changes no point or facet by the truth's rule
     move_scale = max(float(profile.sigmas(np.array([R]), None, "m")[0][0]), TOLERANCE)
     layout = draw_layout(rng, L, move_scale)
-    stations = draw_stations(rng, fam, R, L)
+    stations = draw_stations(rng, suite_spec, R, L)
     asis = [layout.floor, *(p.mesh for p in layout.asis.values())]
     specs = station_specs(stations, asis, L, budget)
     cad = _write_meshes(root, layout)
     save_profile(profile, root / PROFILE_FILE)
-    scans, changed = _scan_all(root, layout, stations, specs, profile, fam, pose_files, rng)
+    scans, changed = _scan_all(root, layout, stations, specs, profile, suite_spec, pose_files, rng)
     truth = root / "truth_E1.npz"
     _epoch_truth(truth, layout, stations, specs, changed, np.random.default_rng([seed, 1]))
     viewpoints = [[round(float(v), 6) for v in eye] for eye, _, _ in stations]
-    workflow = write_workflow(root, family, seed, cad, scans, viewpoints, PROFILE_FILE, fam.as_mesh)
-    summary = {"scene": f"family-{family}", "family": family, "seed": seed, "tolerance": TOLERANCE,
+    workflow = write_workflow(root, suite, seed, cad, scans, viewpoints, PROFILE_FILE, suite_spec.as_mesh)
+    summary = {"scene": f"suite-{suite}", "suite": suite, "seed": seed, "tolerance": TOLERANCE,
                "side_m": L, "range_m": R, "noise_scale": scale, "profile": profile.name, "pose_files": pose_files,
                "point_budget": budget, "move_scale_m": move_scale, "points": int(changed.size),
                "changed": int(changed.sum()), "objects": layout.states,
@@ -199,5 +199,5 @@ def make_family_scene(family: str, out_dir: str | Path, seed: int) -> FamilyScen
                "stations": [{"eye": eye.tolist(), "target": target.tolist(), "scanner": spec.model_dump()}
                             for (eye, target, _), spec in zip(stations, specs, strict=True)]}
     (root / "scene.json").write_text(json.dumps(summary, indent=2) + "\n")
-    return FamilyScene(family, seed, root, workflow, cad, scans, truth, viewpoints, dict(layout.states),
-                       int(changed.size), pose_files, fam.as_mesh)
+    return SuiteScene(suite, seed, root, workflow, cad, scans, truth, viewpoints, dict(layout.states),
+                       int(changed.size), pose_files, suite_spec.as_mesh)

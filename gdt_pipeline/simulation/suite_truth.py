@@ -1,4 +1,4 @@
-"""Ground truth of a family scene by area: samples spread over every facet (at least one per ~(5 mm)², up to a cap),
+"""Ground truth of a suite scene by area: samples spread over every facet (at least one per ~(5 mm)², up to a cap),
 which of them a station could see (inside its pinhole frustum and range, facing it, not hidden by the as-is scene),
 which lie where the as-is scene no longer has a surface (vacated), and per facet of a reconstructed mesh scan the
 share of its area on changed geometry."""

@@ -1,4 +1,4 @@
-"""The driver the ToF family benches share: scene k of ``--scenes`` from ``scene_seed(--seed, k)`` into
+"""The driver the ToF suite benches share: scene k of ``--scenes`` from ``scene_seed(--seed, k)`` into
 ``--out``/scene_<k>, a line per scene, a summary, and every row in ``results.json``."""
 
 from __future__ import annotations
@@ -9,11 +9,11 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
-from gdt_pipeline.evaluation.family import scene_seed
+from gdt_pipeline.evaluation.suite import scene_seed
 from gdt_pipeline.plugins import load_registry
 
 
-def run_family(doc: str, seed: int, out: str, run_scene: Callable[[Path, int, object], dict],
+def run_suite(doc: str, seed: int, out: str, run_scene: Callable[[Path, int, object], dict],
                line: Callable[[dict], str], summary: Callable[[list[dict]], None]) -> None:
     """Parse the command line, run every scene with ``run_scene(root, seed, registry)``, print ``line(row)`` per
     scene and ``summary(rows)`` at the end."""

@@ -1,4 +1,4 @@
-"""The workflow a family scene ships with: the default chain, every stage at its default parameters except the ones
+"""The workflow a suite scene ships with: the default chain, every stage at its default parameters except the ones
 the scene fixes (the CAD's ±0.5 mm tolerance boxes, the true sensor profile, a 1 % false-alarm rate)."""
 
 from __future__ import annotations
@@ -35,15 +35,15 @@ def _vec(v: list[float]) -> str:
     return "[" + ", ".join(repr(float(x)) for x in v) + "]"
 
 
-def write_workflow(root: Path, family: str, seed: int, cad: list[Path], scans: list[Path],
+def write_workflow(root: Path, suite: str, seed: int, cad: list[Path], scans: list[Path],
                    viewpoints: list[list[float]], profile_file: str, as_mesh: bool) -> Path:
     """Write ``workflow.yaml`` into the scene directory (paths relative to it) and return its path."""
     kind = ", kind: mesh" if as_mesh else ""
     lines = [
-        f"# A random scene of the {family!r} family (seed {seed}), written by gdt_pipeline.simulation.family.",
-        "# Run: gdt run workflow.yaml (in this directory); gdt eval --family scores whole families.",
-        f"name: family-{family}-{seed}",
-        "description: " + json.dumps(f"Random {family} scene (seed {seed}): CAD (E0) and a simulated scan with parts "
+        f"# A random scene of the {suite!r} suite (seed {seed}), written by gdt_pipeline.simulation.suite.",
+        "# Run: gdt run workflow.yaml (in this directory); gdt eval --suite scores whole suites.",
+        f"name: suite-{suite}-{seed}",
+        "description: " + json.dumps(f"Random {suite} scene (seed {seed}): CAD (E0) and a simulated scan with parts "
                                      f"added, removed and moved (E1)."),
         f"twin: {TWIN_DIR}",
         "units: m",

@@ -18,8 +18,10 @@ demo: setup
 	$(BIN)/gdt run workflows/demo.yaml --overwrite
 	$(BIN)/gdt audit out/demo_twin
 
+# Two workers (the machines this runs on have two cores), a test module to each at a time: module fixtures are
+# built once, and the bad-input corpus (one module) runs its cases two at a time in one of them.
 test: setup browser-deps
-	$(BIN)/python -m pytest -q -p no:cacheprovider
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n 2 --dist loadscope
 
 bench: setup
 	$(BIN)/python bench/speed.py

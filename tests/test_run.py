@@ -3,8 +3,10 @@ its provenance and gdt.lock are read back; bad input ends in a clear error and l
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+import shutil
 import types
 from pathlib import Path
 
@@ -16,7 +18,7 @@ from gdt_pipeline import StageSpec, hookimpl
 from gdt_pipeline.plugins import load_registry
 from gdt_pipeline.runner import run_workflow
 
-from .conftest import CubeScene, run_gdt, write_cube_workflow, write_points_ply
+from .conftest import CubeScene, make_cube_scene, run_gdt, write_cube_workflow, write_points_ply
 
 
 def _f1(pred: np.ndarray, truth: np.ndarray) -> float:
@@ -112,14 +114,24 @@ def test_sample_plugin_used_in_a_workflow(cube_scene: CubeScene) -> None:
     assert _f1(state == 1, cube_scene.changed) > 0.97
 
 
-@pytest.fixture
-def existing_twin(cube_scene: CubeScene) -> tuple[CubeScene, Path, dict[str, str]]:
-    """A cube scene with a twin already written, and the digest of that twin's files."""
-    wf = write_cube_workflow(cube_scene)
-    res = run_gdt("run", str(wf), "--quiet")
+@pytest.fixture(scope="module")
+def written_twin(tmp_path_factory: pytest.TempPathFactory) -> CubeScene:
+    """A cube scene with a twin written by `gdt run`, once for the module (the tests below get copies)."""
+    scene = make_cube_scene(tmp_path_factory.mktemp("written") / "scene")
+    res = run_gdt("run", str(write_cube_workflow(scene)), "--quiet")
     assert res.returncode == 0, res.stderr
-    twin = cube_scene.dir / "twin"
-    return cube_scene, wf, _tree_digest(twin)
+    return scene
+
+
+@pytest.fixture
+def existing_twin(written_twin: CubeScene, tmp_path: Path) -> tuple[CubeScene, Path, dict[str, str]]:
+    """A copy of the cube scene with its twin already written (paths in a twin are relative to it), and the digest
+    of that twin's files."""
+    root = tmp_path / "scene"
+    shutil.copytree(written_twin.dir, root)
+    scene = dataclasses.replace(written_twin, dir=root, cad=root / written_twin.cad.name,
+                                scan=root / written_twin.scan.name)
+    return scene, root / "workflow.yaml", _tree_digest(root / "twin")
 
 
 def _assert_failed_cleanly(res, scene: CubeScene, digest: dict[str, str], *needles: str) -> None:

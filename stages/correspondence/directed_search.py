@@ -11,7 +11,6 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
-from scipy.stats import chi2
 
 from gdt_pipeline import GaussianUncertainty, StageContext, StageSpec, family_stage
 from gdt_pipeline.geometry.extent import check_scales
@@ -72,7 +71,7 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
     if (ref_pts is None or ref_pts.empty) and (ref_mesh is None or ref_mesh.empty):
         wanted = " or ".join(k for k, u in (("points", use_points), ("meshes", use_meshes)) if u)
         raise ValueError(f"{name}: the twin holds no visible {wanted} to match against")
-    q99 = float(chi2.ppf(p.probability, 3))
+    q99 = _chi2_3(p.probability)
     extra_var = 0.0
     if ref_mesh is not None and not ref_mesh.empty:
         extra_var = max(float(np.linalg.eigvalsh(np.asarray(reference.items[i].dataset.element_covariance())
@@ -144,14 +143,22 @@ def _directed_reach(params: DirectedParams, slots: Mapping[str, Any]) -> float:
     reach = params.search_sigmas * np.sqrt(var_q + var_mesh) if meshes else 0.0
     if any(it.dataset.faces is None and it.visible.any() for it in reference.items):
         var_pts = ReferencePoints(reference, params.surface_sampling).max_var
-        reach = max(reach, float(np.sqrt(chi2.ppf(params.probability, 3) * (var_q + var_pts))))
+        reach = max(reach, float(np.sqrt(_chi2_3(params.probability) * (var_q + var_pts))))
     if params.expectation != "point" and meshes:
         # a pooled point's neighbours: anchors within the pooling radius, each point within the search reach of its
         # anchor, twice over (the second pass anchors by the first one's neighbours)
         slack = params.search_sigmas * np.sqrt(var_q)
-        widest = params.pooling_radius or float(np.sqrt(chi2.ppf(0.99, 3) * var_q))
+        widest = params.pooling_radius or float(np.sqrt(_chi2_3(0.99) * var_q))
         reach = max(reach, 2 * widest + 4 * slack)
     return float(reach + facet)
+
+
+def _chi2_3(probability: float) -> float:
+    """The χ² quantile of three degrees of freedom (scipy.stats imported here: it takes a third of a second, and
+    commands that only load the stages need none of it)."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(probability, 3))
 
 
 def _stage(name: str, query_kind: str | None, points: bool, meshes: bool, description: str) -> StageSpec:

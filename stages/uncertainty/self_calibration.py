@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import minimize
 
 from gdt_pipeline.sensors import SensorProfile
 
@@ -106,6 +105,8 @@ def _weighted_nll(log_scales: np.ndarray, data: FitData, weight: np.ndarray) -> 
 
 def em_fit(data: FitData, separate: bool = False) -> tuple[np.ndarray, float, int]:
     """Log-scales (range, lateral), the outlier share and the rounds: EM over a Gaussian and a uniform class."""
+    from scipy import optimize  # here: a quarter of a second to import, for the runs that calibrate only
+
     log_scales, outlier, rounds = np.zeros(2 if separate else 1), 0.1, 0
     while rounds < EM_ROUNDS:
         rounds += 1
@@ -114,8 +115,8 @@ def em_fit(data: FitData, separate: bool = False) -> tuple[np.ndarray, float, in
         uniform = outlier / (2.0 * data.cutoff)
         weight = inlier / np.maximum(inlier + uniform, 1e-300)
         outlier = float(np.clip(1.0 - weight.mean(), 1e-4, 0.9))
-        found = minimize(_weighted_nll, log_scales, args=(data, weight), jac=True, method="L-BFGS-B",
-                         bounds=[(-5.0, 5.0)] * len(log_scales))
+        found = optimize.minimize(_weighted_nll, log_scales, args=(data, weight), jac=True, method="L-BFGS-B",
+                                  bounds=[(-5.0, 5.0)] * len(log_scales))
         step = float(np.max(np.abs(found.x - log_scales)))
         log_scales = found.x
         if step < 1e-4:

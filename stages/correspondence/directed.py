@@ -65,10 +65,10 @@ def facet_uniforms(tri: np.ndarray, facet: np.ndarray, number: np.ndarray, seed:
 
 def query_samples(ds: Dataset, seed: int, density: float | None, max_per_facet: int
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Query points with the element each belongs to: the points themselves, or area-weighted facet samples
+    """Query points and the element each belongs to: the points themselves, or area-weighted facet samples
     (``density`` per unit², default about four on an average facet), each facet's drawn from its own hash."""
     if ds.faces is None:
-        return np.arange(len(ds.points)), ds.points
+        return ds.points, np.arange(len(ds.points))
     tri = ds.points[ds.faces]
     if density is None:
         density = default_density(ds)
@@ -77,7 +77,7 @@ def query_samples(ds: Dataset, seed: int, density: float | None, max_per_facet: 
     number = np.arange(len(idx)) - np.repeat(np.cumsum(counts) - counts, counts)
     with np.errstate(over="ignore"):
         r1, r2 = facet_uniforms(tri, idx, number, seed)
-    return idx, triangle_points(tri, idx, r1, r2)
+    return triangle_points(tri, idx, r1, r2), idx
 
 
 def sampling_covariance(pos: np.ndarray, cov: np.ndarray, neighbours: int = 12) -> tuple[np.ndarray, np.ndarray]:

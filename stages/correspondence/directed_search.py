@@ -87,7 +87,7 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
             raise ValueError(f"recent dataset {ds.name!r} has no uncertainty: add an uncertainty stage before {name}")
         # the density from the whole epoch (a tile holds some facets only); facets sampled by their own hash
         density = p.sample_density or ctx.survey.get("facet_density", {}).get(ds.name)
-        element, qpos = query_samples(ds, _sample_seed(ctx), density, p.max_samples_per_facet)
+        qpos, element = query_samples(ds, _sample_seed(ctx), density, p.max_samples_per_facet)
         if ds.name in expected:
             qpos, qcov = expected[ds.name].position[element], expected[ds.name].covariance[element]
         else:

@@ -25,6 +25,7 @@ import pluggy
 from pydantic import BaseModel
 
 from ..errors import PluginError
+from ..geometry.normals import knn_reach
 from ..types import Dataset, EpochInfo
 
 PROJECT = "gdt_pipeline"
@@ -111,6 +112,12 @@ class StageContext:
         the tile again with a wider one, so tiled results stay those of the whole epoch; elsewhere nothing happens."""
         if self.tile is not None:
             self.shortfalls.append(self.tile.shortfall(positions, radii))
+
+    def k_nearest(self, points: np.ndarray, k: int) -> None:
+        """Declare that the result at each of ``points`` used its ``k`` nearest points (PCA normals): in a tile, how
+        far each neighbourhood reached is searched and declared as ``neighbourhoods``; elsewhere nothing happens."""
+        if self.tile is not None:
+            self.neighbourhoods(points, knn_reach(points, k))
 
     def __getitem__(self, name: str) -> Any:
         """The value of a required slot."""

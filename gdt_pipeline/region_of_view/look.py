@@ -171,14 +171,15 @@ def look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list[
     sight = Sight(scene, point_tree, confirmed, offset, spacing, p.rule)
     views, counts = {}, {"inside": 0, "occluded": 0, "in_view": 0, "unmatched_in_view": 0}
     for lk in looked:
-        item, pos, inside, normal, near = lk.item, lk.pos, lk.inside, lk.normal, lk.near
+        inside = lk.inside
         if p.sight == "stations":
-            view = station_view(pos, inside, normal, stations, sight, p)
+            view = station_view(lk.pos, inside, lk.normal, stations, sight, p)
             counts["occluded"] += int((inside & ~view).sum())
         else:
-            view, inside, n_hidden = plane_view(pos, inside, normal, vps, sight, p)
+            view, inside, n_hidden = plane_view(lk.pos, inside, lk.normal, vps, sight, p)
             counts["occluded"] += n_hidden
-        views[item.key] = ItemView(view, near & view)
+        near = lk.near
+        views[lk.item.key] = ItemView(view, near & view)
         counts["inside"] += int(inside.sum())
         counts["in_view"] += int(view.sum())
         counts["unmatched_in_view"] += int((view & ~near).sum())

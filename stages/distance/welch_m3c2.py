@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveInt
 from scipy.special import ndtr
 
 from gdt_pipeline import Dataset, StageContext
-from gdt_pipeline.geometry import estimate_normals, knn_reach
+from gdt_pipeline.geometry import estimate_normals
 from gdt_pipeline.measures import MeasureResult, PairGroup, distance_stage
 
 
@@ -28,10 +28,8 @@ class WelchParams(BaseModel):
 
 def _cloud_normals(ctx: StageContext, ds: Dataset) -> np.ndarray:
     """PCA normals of a recent point cloud about the epoch's origin (declared as neighbourhoods in a tile)."""
-    k = ctx.params.normal_neighbours
-    if ctx.tile is not None:  # in a tile: the runner checks that every neighbourhood was whole
-        ctx.neighbourhoods(ds.points, knn_reach(ds.points, k))
-    return estimate_normals(ds.points, k, ctx.epoch.origin)
+    ctx.k_nearest(ds.points, ctx.params.normal_neighbours)
+    return estimate_normals(ds.points, ctx.params.normal_neighbours, ctx.epoch.origin)
 
 
 def with_normals(ctx: StageContext, groups: list[PairGroup], query: int) -> list[PairGroup]:

@@ -14,7 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveInt
 
 from gdt_pipeline import Dataset, GaussianUncertainty, StageContext, family_stage
-from gdt_pipeline.geometry import estimate_normals, knn_reach
+from gdt_pipeline.geometry import estimate_normals
 from gdt_pipeline.sensors import PRESETS, SensorProfile, load_profile, profile_problems
 
 from ._select import map_selected
@@ -129,8 +129,7 @@ def incidence_cosines(ctx: StageContext, ds: Dataset, origin: np.ndarray, profil
     if np.all(np.isfinite(cos)):
         return cos
     normals = estimate_normals(ds.points, ctx.params.normal_neighbours, ctx.epoch.origin)
-    if ctx.tile is not None:  # in a tile: the runner checks that every neighbourhood was whole
-        ctx.neighbourhoods(ds.points, knn_reach(ds.points, ctx.params.normal_neighbours))
+    ctx.k_nearest(ds.points, ctx.params.normal_neighbours)  # in a tile, the runner checks each was whole
     return np.where(np.isfinite(cos), cos, np.einsum("ij,ij->i", normals, unit))
 
 

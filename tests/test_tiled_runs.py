@@ -165,3 +165,40 @@ def test_correspondences_made_whole_are_cut_into_tiles(tmp_path: Path) -> None:
         assert np.array_equal(x.state, tiled[key].state), key
         assert np.array_equal(x.score, tiled[key].score, equal_nan=True), key
     assert int(np.sum(whole[("E1", "E1_scan")].state == 1)) > 500  # the new box is found
+
+
+def test_welch_m3c2_with_cloud_normals_is_the_same_whole_or_in_tiles(cube_scene, registry: object) -> None:
+    """A third epoch scans the cube scene again: against the new box's points kept from E1, welch_m3c2 takes the
+    recent cloud's k-nearest PCA normals (20 points, about 5 cm on the box), which a tile whose halo is the 1 cm
+    search radius must widen to see whole (declared neighbourhoods), about the epoch's origin."""
+    from .conftest import make_cube_scene, write_cube_workflow
+
+    rescan = make_cube_scene(cube_scene.dir.parent / "rescan", seed=1)  # the same scene, other noise
+    (cube_scene.dir / "scan2.ply").write_bytes(rescan.scan.read_bytes())
+    wf = write_cube_workflow(cube_scene, distance="welch_m3c2")
+    again = "  - id: E2\n    role: as-is\n    inputs: [{path: scan2.ply, name: again}]\n"
+    text = wf.read_text().replace("stages:\n", again + "stages:\n")
+    text = text.replace("  - uses: nearest\n    role: as-is\n", "  - uses: nearest\n    role: as-is\n"
+                                                                  "    with: {max_distance: 0.01}\n")
+    wf.write_text(text.replace("uses: fixed\n    role: as-is\n    with: {tau: 10.0}",
+                               "uses: significance\n    role: as-is\n    with: {alpha: 0.01}"))
+    whole = run_workflow(wf, registry=registry, twin=cube_scene.dir / "welch_whole").twin
+    tiled = run_workflow(wf, registry=registry, twin=cube_scene.dir / "welch_tiled",
+                         tiling=TilingOptions(tile=0.15)).twin
+    prov = TwinStore.open(tiled).provenance("E2")
+    [welch] = [s for s in prov["stages"] if s["uses"] == "welch_m3c2"]
+    assert welch["report"]["tiling"]["tiles"] > 1 and welch["report"]["tiling"]["tiles_with_wider_halo"] > 0
+    a, b = _elements(whole), _elements(tiled)
+    assert a.keys() == b.keys()
+    for key in a:
+        np.testing.assert_array_equal(a[key].state, b[key].state, err_msg=str(key))
+        both = np.isfinite(a[key].score)
+        np.testing.assert_array_equal(both, np.isfinite(b[key].score), err_msg=str(key))
+        # against the CAD, Open3D's closest points are float32 about the centre of what a tile holds (see above):
+        # |t| agrees to 1e-4, where thresholds lie near 2.6
+        np.testing.assert_allclose(a[key].score[both], b[key].score[both], rtol=2e-3, atol=1e-4, err_msg=str(key))
+    # the new box's points of E2 are paired with E1's kept points of it: cloud normals, bit for bit
+    box = cube_scene.changed
+    x, y = a[("E2", "E2_again")].score[box], b[("E2", "E2_again")].score[box]
+    assert np.isfinite(x).sum() > 0.3 * box.sum() and np.nanmax(x) > 1.0  # scored, along normals that matter
+    np.testing.assert_array_equal(x, y)

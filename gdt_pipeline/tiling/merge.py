@@ -60,6 +60,15 @@ def merge_correspondences(pieces: Sequence[Correspondences], n_elements: int, qu
     return joined.take(order), [where[offsets[i]:offsets[i + 1]] for i in range(len(pieces))]
 
 
+def _p_values(pieces: Sequence[Scores] | Sequence[Change], order: ElementOrder) -> np.ndarray | None:
+    """The tiles' p-values in element order, NaN (no test) in a tile that scored no pair; None when no tile has any
+    (the measure gives none)."""
+    if all(p.p_value is None for p in pieces):
+        return None
+    parts = [np.full(len(p.score), np.nan) if p.p_value is None else p.p_value for p in pieces]
+    return np.concatenate(parts)[order.position]
+
+
 def merge_scores(pieces: Sequence[Scores], order: ElementOrder, candidate_maps: list[np.ndarray] | None) -> Scores:
     """The tiles' core scores in element order; winning candidates renumbered through ``candidate_maps`` (per tile,
     tile candidate → merged candidate) when the correspondences were merged too."""
@@ -75,7 +84,7 @@ def merge_scores(pieces: Sequence[Scores], order: ElementOrder, candidate_maps: 
                 m[won] = candidate_maps[i][p.match[won]]
             parts.append(m)
         match = np.concatenate(parts)[order.position]
-    p_value = None if first.p_value is None else np.concatenate([p.p_value for p in pieces])[order.position]
+    p_value = _p_values(pieces, order)
     tolerances = [p.tolerance for p in pieces if p.tolerance is not None]
     return Scores(query=first.query, score=np.concatenate([p.score for p in pieces])[order.position],
                   measure=first.measure, p_value=p_value, tolerance=max(tolerances) if tolerances else None,
@@ -90,4 +99,4 @@ def merge_change(pieces: Sequence[Change], order: ElementOrder) -> Change:
         return np.concatenate([getattr(p, name) for p in pieces])[order.position]
 
     return Change(query=first.query, score=cat("score"), mask=cat("mask"), state=cat("state"),
-                  p_value=None if first.p_value is None else cat("p_value"), threshold=first.threshold)
+                  p_value=_p_values(pieces, order), threshold=first.threshold)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
 
 from gdt_pipeline import StageContext, family_stage
@@ -52,10 +53,13 @@ class SignificanceParams(BaseModel):
 def _significance(ctx: StageContext) -> dict[str, Any]:
     out = []
     for s in ctx["scores"]:
-        if s.p_value is None:
+        if s.p_value is None and not np.isnan(s.score).all():
             raise ValueError(f"measure {s.measure!r} gives no p-values; significance needs a test "
                              f"(hotelling, welch_m3c2)")
-        mask = ~(s.p_value >= ctx.params.alpha)  # NaN (no correspondence) counts as changed
+        # NaN (no correspondence) counts as changed; so does every element of a dataset (or tile) with no pair at
+        # all, of which no measure can say whether it would have given p-values
+        p_value = np.full(len(s.score), np.nan) if s.p_value is None else s.p_value
+        mask = ~(p_value >= ctx.params.alpha)
         out.append(change_of(s, mask, None))
     return {"change": out}
 

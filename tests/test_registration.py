@@ -75,12 +75,13 @@ def test_known_transform_is_recovered(registry, name: str) -> None:
 def test_stable_areas_beat_plain_icp_with_a_new_object(registry) -> None:
     comp, cad = _cad_composite()
     scan = _scan(cad, noise=0.002)["points"]
-    # a new panel 3 cm in front of the small cuboid's +x face: close enough to bias a plain ICP
+    # a new panel 2 cm in front of the small cuboid's +x face: within the finest correspondence distance of the
+    # schedule scaled to the scan (2 x 4.9 mm spacing x 2.5 = 2.5 cm), so it biases a plain ICP
     rng = np.random.default_rng(5)
     small = cad[0]
     x_face = small.bounds[1][0]
     n_new = len(scan) // 9  # 10 % of all points
-    panel = np.column_stack([np.full(n_new, x_face + 0.03), rng.uniform(small.bounds[0][1], small.bounds[1][1], n_new),
+    panel = np.column_stack([np.full(n_new, x_face + 0.02), rng.uniform(small.bounds[0][1], small.bounds[1][1], n_new),
                              rng.uniform(0.0, 0.15, n_new)]) + rng.normal(0, 0.002, (n_new, 3))
     pts = np.vstack([scan, panel])
     moved = pts @ T_TRUE[:3, :3].T + T_TRUE[:3, 3]
@@ -88,7 +89,7 @@ def test_stable_areas_beat_plain_icp_with_a_new_object(registry) -> None:
     stable, ctx = _register(registry, "stable_areas", {}, moved, comp)
     _, err_plain = _errors(plain["registration"].transform, T_TRUE, scan)
     _, err_stable = _errors(stable["registration"].transform, T_TRUE, scan)
-    assert err_stable < err_plain, (err_stable, err_plain)
+    assert err_stable < err_plain / 5 and err_plain > 0.001, (err_stable, err_plain)
     assert err_stable < 0.001
     assert ctx.notes["stable_points"] < ctx.notes["all_points"] - 0.8 * n_new  # the panel was trimmed away
 
@@ -101,7 +102,7 @@ def test_coarse_alignment_from_far_off(registry) -> None:
     far[:3, 3] = [0.5, -0.3, 0.05]
     moved = truth @ far[:3, :3].T + far[:3, 3]
     plain, _ = _register(registry, "gicp", {}, moved, comp)
-    out, ctx = _register(registry, "coarse", {"feature_voxel": 0.02}, moved, comp)
+    out, ctx = _register(registry, "coarse", {}, moved, comp)  # features at the schedule's coarsest voxel
     angle, shift = _errors(out["registration"].transform, far, truth)
     assert angle < 0.05 and shift < 0.001, (angle, shift, ctx.notes)
     assert _errors(plain["registration"].transform, far, truth)[1] > 0.05  # ICP alone does not get there

@@ -160,9 +160,12 @@ def _colour_scale(chunk: Any) -> float:
 
 
 def _attribute_rows(chunk: Any, keep: Any, attributes: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """The attributes asked for that a chunk's point format has: intensity as float32, colour as float32 0..1."""
+    """The attributes asked for that a chunk's point format has: intensity as float32, colour as float32 0..1,
+    the ASPRS classification as uint8 (every point format has one)."""
     names = set(chunk.point_format.dimension_names)
     out: dict[str, np.ndarray] = {}
+    if "classification" in attributes and "classification" in names:
+        out["classification"] = np.asarray(chunk.classification, dtype=np.uint8)[keep]
     if "intensity" in attributes and "intensity" in names:
         out["intensity"] = np.asarray(chunk.intensity, dtype=np.float32)[keep]
     if "color" in attributes and {"red", "green", "blue"} <= names:
@@ -174,9 +177,9 @@ def _attribute_rows(chunk: Any, keep: Any, attributes: tuple[str, ...]) -> dict[
 def read_las(path: Path, classes: list[int] | None, attributes: tuple[str, ...] = ("intensity", "color")
              ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """(N,3) scaled coordinates of a LAS/LAZ (optionally only some ASPRS classes) and the per-point ``attributes``
-    the point format has (``intensity``, ``color``), header checked first; read a chunk of points at a time, so that
-    reading costs what it returns (24 bytes a point, plus 4 for intensity and 12 for colour), not the whole point
-    records and their copies besides (about 100 bytes a point)."""
+    the point format has (``intensity``, ``color``, ``classification``), header checked first; read a chunk of
+    points at a time, so that reading costs what it returns (24 bytes a point, plus 4 for intensity, 12 for colour
+    and 1 for the class), not the whole point records and their copies besides (about 100 bytes a point)."""
     import laspy
 
     count = check_las_header(path)
@@ -211,9 +214,11 @@ class LasParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     classes: list[int] | None = Field(None, description="Keep only points of these ASPRS classes (e.g. [2] ground).")
-    attributes: list[Literal["intensity", "color"]] = Field(
-        ["intensity", "color"], description="Per-point values to carry into the twin when the file has them "
-                                            "(gdt:intensity, gdt:scanColor); [] for coordinates only.")
+    attributes: list[Literal["intensity", "color", "classification"]] = Field(
+        ["intensity", "color", "classification"],
+        description="Per-point values to keep when the file has them: intensity and color go into the twin "
+                    "(gdt:intensity, gdt:scanColor), classification is what a registrar's `classes` selects; [] for "
+                    "coordinates only.")
 
 
 def _read_las(req: ReadRequest) -> Dataset:

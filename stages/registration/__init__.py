@@ -19,7 +19,7 @@ from __future__ import annotations
 from gdt_pipeline import StageSpec, hookimpl
 
 from . import coarse, given, icp, identity, stable_areas
-from ._icp import ScheduleParams, icp_schedule, source_points, target_points, transform_covariance
+from ._icp import ScheduleParams, icp_schedule, source_points, target_points
 from .coarse import CoarseParams
 from .given import GivenParams
 from .icp import GicpParams, PointToPlaneParams
@@ -27,8 +27,7 @@ from .identity import IdentityParams
 from .stable_areas import StableAreasParams
 
 __all__ = ["CoarseParams", "GicpParams", "GivenParams", "IdentityParams", "PointToPlaneParams", "ScheduleParams",
-           "StableAreasParams", "gdt_stages", "icp_schedule", "source_points", "target_points",
-           "transform_covariance"]
+           "StableAreasParams", "gdt_stages", "icp_schedule", "source_points", "target_points"]
 
 
 @hookimpl

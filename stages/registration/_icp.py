@@ -1,16 +1,21 @@
 """What the ICP registrars share: rigid-transform checks, the schedule parameters, the twin and the recent data as
-points, coarse-to-fine ICP, the transform's covariance, and the result every registrar returns."""
+points (of some LAS classes when asked), coarse-to-fine ICP, and the judged result every registrar returns."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, field_validator
 
-from gdt_pipeline import Composite, Dataset, Registration, StageContext
+from gdt_pipeline import Composite, Dataset, Registration, StageContext, StageError
 from gdt_pipeline.geometry import sample_surface
 from gdt_pipeline.geometry.extent import check_samples, check_scales, expected_samples
+
+from ._classes import class_hint, recent_elements, reference_elements
+from ._quality import Fit, Limits, assess, check_covariance, suspicions
+from ._schedule import Schedule, schedule_for
 
 
 def check_rigid(t: np.ndarray, what: str) -> np.ndarray:
@@ -23,27 +28,58 @@ def check_rigid(t: np.ndarray, what: str) -> np.ndarray:
     return t
 
 
-def target_points(reference: Composite, spacing: float, rng: np.random.Generator) -> np.ndarray:
-    """The twin's current visible geometry as points."""
-    count = sum(expected_samples(it.dataset, spacing, np.flatnonzero(it.visible)) for it in reference.items)
+def target_points(reference: Composite, spacing: float, rng: np.random.Generator,
+                  elements: list[np.ndarray] | None = None) -> np.ndarray:
+    """The twin's current visible geometry as points (only ``elements`` of each item when given)."""
+    picks = elements if elements is not None else [np.flatnonzero(it.visible) for it in reference.items]
+    pairs = list(zip(reference.items, picks, strict=True))
+    count = sum(expected_samples(it.dataset, spacing, e) for it, e in pairs)
     check_samples(count, spacing, "registration", "the twin")
-    parts = [sample_surface(it.dataset, spacing, rng, np.flatnonzero(it.visible))
-             for it in reference.items if it.visible.any()]
+    parts = [sample_surface(it.dataset, spacing, rng, e) for it, e in pairs if len(e)]
     if not parts:
         raise ValueError("the twin has no visible geometry to register to")
     return np.concatenate(parts)
 
 
-def source_points(recent: list[Dataset], spacing: float, rng: np.random.Generator) -> np.ndarray:
-    """The recent data as points."""
-    check_samples(sum(expected_samples(d, spacing) for d in recent), spacing, "registration", "the recent data")
-    return np.concatenate([sample_surface(d, spacing, rng) for d in recent])
+def source_points(recent: list[Dataset], spacing: float, rng: np.random.Generator,
+                  elements: list[np.ndarray | None] | None = None) -> np.ndarray:
+    """The recent data as points (only ``elements`` of each dataset when given)."""
+    picks = elements if elements is not None else [None] * len(recent)
+    pairs = list(zip(recent, picks, strict=True))
+    check_samples(sum(expected_samples(d, spacing, e) for d, e in pairs), spacing, "registration", "the recent data")
+    return np.concatenate([sample_surface(d, spacing, rng, e) for d, e in pairs])
 
 
-def registration_inputs(ctx: StageContext, spacing: float, method: str) -> tuple[np.ndarray, np.ndarray]:
-    """The twin and the recent data as points (target, source), after checking they are at the same scale."""
-    check_scales(ctx["recent"], ctx["reference"], method)
-    return target_points(ctx["reference"], spacing, ctx.rng), source_points(ctx["recent"], spacing, ctx.rng)
+def _diagonal(points: np.ndarray) -> float:
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """What a registration fits: the twin's points (target), the recent points (source), the schedule, and what
+    is suspect about the choice of points already (a warning each)."""
+
+    tgt: np.ndarray
+    src: np.ndarray
+    schedule: Schedule
+    hints: list[str]
+
+
+def registration_inputs(ctx: StageContext, method: str) -> Inputs:
+    """The twin and the recent data as points (target, source; of ``classes`` only when given) after checking they
+    are at the same scale, and the ICP schedule (the params', or scaled to the points' spacing and extent)."""
+    recent, reference, p = ctx["recent"], ctx["reference"], ctx.params
+    check_scales(recent, reference, method)
+    rec_el = recent_elements(recent, p.classes, method)
+    ref_el = reference_elements(reference, p.classes, method)
+    sets = [d.points if e is None else d.points[e] for d, e in zip(recent, rec_el, strict=True) if d.faces is None]
+    sets += [it.dataset.points[e] for it, e in zip(reference.items, ref_el, strict=True) if it.dataset.faces is None]
+    schedule = schedule_for(p, sets, _diagonal(np.vstack([d.points for d in recent])), method)
+    ctx.report(schedule=schedule.record(), classes=p.classes)
+    tgt = target_points(reference, schedule.sample_spacing, ctx.rng, ref_el)
+    src = source_points(recent, schedule.sample_spacing, ctx.rng, rec_el)
+    hint = class_hint(recent, p.classes)
+    return Inputs(tgt, src, schedule, [] if hint is None else [hint])
 
 
 def to_pcd(points: np.ndarray, origin: np.ndarray) -> Any:
@@ -61,16 +97,25 @@ def shifted(t_local: np.ndarray, origin: np.ndarray) -> np.ndarray:
 
 
 class ScheduleParams(BaseModel):
-    """Coarse-to-fine ICP settings shared by the ICP registrars."""
+    """Coarse-to-fine ICP settings shared by the ICP registrars, and when a result is suspect."""
 
     model_config = ConfigDict(extra="forbid")
-    voxels: list[PositiveFloat] = Field([0.05, 0.02, 0.01], min_length=1,
-                                        description="Voxel sizes of the coarse-to-fine schedule, twin units.")
+    voxels: list[PositiveFloat] | None = Field(
+        None, min_length=1, description="Voxel sizes of the coarse-to-fine schedule, twin units (default: 10, 4 and 2 "
+                                        "times the data's median point spacing, the coarsest within 5 % of the "
+                                        "recent data's bounding-box diagonal).")
     max_distance_factor: PositiveFloat = Field(2.5, description="Correspondence distance = factor x voxel.")
     iterations: PositiveInt = Field(50, description="ICP iterations per level.")
     initial: list[list[float]] | None = Field(None, description="Initial 4x4 transform (default identity).")
     sample_spacing: PositiveFloat | None = Field(None, description="Spacing of samples on meshes (default: the "
                                                                    "finest voxel / 2).")
+    classes: list[int] | None = Field(None, min_length=1, description="Fit on the points of these LAS classes only "
+                                      "(both epochs, e.g. [2] ground); the transform moves every point.")
+    min_fitness: float = Field(0.3, ge=0, le=1, description="Warn below this share of recent points matched.")
+    min_overlap: float = Field(0.2, ge=0, le=1, description="Warn below this share of twin points matched.")
+    max_residual_share: PositiveFloat = Field(0.25, description="Warn when the residual spread (1.4826 MAD) is over "
+                                                                "this share of the correspondence distance.")
+    strict: bool = Field(False, description="A suspect registration (the warnings above) is an error instead.")
 
     @field_validator("initial")
     @classmethod
@@ -80,8 +125,8 @@ class ScheduleParams(BaseModel):
         return v
 
 
-def icp_schedule(src: np.ndarray, tgt: np.ndarray, params: ScheduleParams, method: str, init: np.ndarray,
-                 origin: np.ndarray) -> tuple[np.ndarray, float, float, float]:
+def icp_schedule(src: np.ndarray, tgt: np.ndarray, schedule: Schedule, iterations: int, method: str,
+                 init: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, float, float, float]:
     """Run ICP level by level; return the local 4x4, fitness, inlier RMSE and the final correspondence distance."""
     import open3d as o3d
 
@@ -89,11 +134,11 @@ def icp_schedule(src: np.ndarray, tgt: np.ndarray, params: ScheduleParams, metho
     t = init.copy()
     src_full, tgt_full = to_pcd(src, origin), to_pcd(tgt, origin)
     fitness = rmse = 0.0
-    dist = params.voxels[-1] * params.max_distance_factor
-    for voxel in params.voxels:
-        dist = voxel * params.max_distance_factor
+    dist = schedule.final_distance
+    for voxel in schedule.voxels:
+        dist = voxel * schedule.max_distance_factor
         s, g = src_full.voxel_down_sample(voxel), tgt_full.voxel_down_sample(voxel)
-        crit = reg.ICPConvergenceCriteria(max_iteration=params.iterations, relative_fitness=1e-9, relative_rmse=1e-9)
+        crit = reg.ICPConvergenceCriteria(max_iteration=iterations, relative_fitness=1e-9, relative_rmse=1e-9)
         if method == "gicp":
             res = reg.registration_generalized_icp(s, g, dist, t, reg.TransformationEstimationForGeneralizedICP(),
                                                    crit)
@@ -105,35 +150,41 @@ def icp_schedule(src: np.ndarray, tgt: np.ndarray, params: ScheduleParams, metho
     return t, fitness, rmse, dist
 
 
-def transform_covariance(src: np.ndarray, tgt: np.ndarray, t_local: np.ndarray, origin: np.ndarray, dist: float,
-                         rmse: float) -> np.ndarray:
-    """6x6 covariance (ω, t) about ``origin``: σ² · info⁻¹, with Open3D's information matrix and σ² = RMSE²/3."""
-    import open3d as o3d
+def _judged(ctx: StageContext, fit: Fit, diagonal: float, hints: list[str], method: str) -> list[str]:
+    """The fit's covariance checked (an error when NaN or larger than the scene) and its suspicions, with the
+    ``hints`` on the points chosen, warned of (or an error under ``strict``)."""
+    p = ctx.params
+    found = suspicions(fit, Limits(p.min_fitness, p.min_overlap, p.max_residual_share, p.strict))
+    check_covariance(fit, diagonal, method, found)
+    found += hints
+    if found and p.strict:
+        raise StageError(f"{method} (strict): the registration is suspect: " + "; ".join(found))
+    for text in found:
+        ctx.log.warning("%s: suspect registration: %s", method, text)
+    return found
 
-    info = np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(
-        to_pcd(src, origin), to_pcd(tgt, origin), dist, t_local))
-    sigma2 = max(rmse, 1e-12) ** 2 / 3.0
-    try:
-        return sigma2 * np.linalg.inv(info)
-    except np.linalg.LinAlgError:
-        return sigma2 * np.linalg.pinv(info)
 
-
-def registration_result(ctx: StageContext, src: np.ndarray, tgt: np.ndarray, t_local: np.ndarray,
-                        origin: np.ndarray, fitness: float, rmse: float, dist: float, method: str) -> dict[str, Any]:
-    """The registration (world transform, fitness, RMSE, covariance), reported, and the recent data moved by it."""
-    if fitness == 0.0:
-        raise ValueError(f"{method}: no correspondences within {dist:g} (twin units); give an `initial` transform, "
-                         f"larger voxels, or use the `coarse` registrar")
-    cov = transform_covariance(src, tgt, t_local, origin, dist, rmse)
+def registration_result(ctx: StageContext, inputs: Inputs, fitted: np.ndarray, t_local: np.ndarray,
+                        origin: np.ndarray, rmse: float, method: str) -> dict[str, Any]:
+    """The registration (world transform, fitness, residual spread, covariance), judged and reported, and the
+    recent data moved by it. ``fitted`` are the source points the fit kept (all of ``inputs.src``, or fewer)."""
+    src, tgt, schedule = inputs.src, inputs.tgt, inputs.schedule
+    fit = assess(fitted - origin, tgt - origin, t_local, schedule.voxels[-1], schedule.final_distance,
+                 src - origin)
+    if fit.pairs == 0:
+        raise ValueError(f"{method}: no correspondences within {fit.distance:g} (twin units); give an `initial` "
+                         f"transform, larger voxels, or use the `coarse` registrar")
+    warnings = _judged(ctx, fit, max(_diagonal(src), _diagonal(tgt)), inputs.hints, method)
     t_world = shifted(t_local, origin)
-    reg = Registration(t_world, fitness=fitness, rmse=rmse, covariance=cov, method=method, center=origin)
+    reg = Registration(t_world, fitness=fit.fitness, rmse=rmse, covariance=fit.covariance,
+                       method=method, center=origin)
     angle = np.degrees(np.arccos(np.clip((np.trace(t_world[:3, :3]) - 1) / 2, -1, 1)))
     shift_at_center = t_world[:3, :3] @ origin + t_world[:3, 3] - origin  # meaningful where |origin| is large
-    ctx.report(fitness=fitness, rmse=rmse, rotation_deg=float(angle), shift_at_center=shift_at_center.tolist(),
-               center=origin.tolist(),
-               sigma_translation=np.sqrt(np.diag(cov)[3:]).tolist(),
-               sigma_rotation_deg=np.degrees(np.sqrt(np.diag(cov)[:3])).tolist())
-    ctx.log.info("%s: fitness %.3f, rmse %.4g, rotation %.4f deg, shift at the centre %s", method, fitness, rmse,
-                 angle, np.round(shift_at_center, 6).tolist())
+    sig_rot, sig_t = fit.sigmas()
+    ctx.report(fitness=fit.fitness, rmse=rmse, overlap=fit.overlap, residual_sigma=fit.residual_sigma, pairs=fit.pairs,
+               rotation_deg=float(angle), shift_at_center=shift_at_center.tolist(), center=origin.tolist(),
+               sigma_translation=sig_t.tolist(), sigma_rotation_deg=sig_rot.tolist(), warnings=warnings)
+    ctx.log.info("%s: fitness %.3f, overlap %.3f, residual spread %.4g, rotation %.4f deg, shift at the centre %s "
+                 "(σ %s)", method, fit.fitness, fit.overlap, fit.residual_sigma, angle,
+                 np.round(shift_at_center, 6).tolist(), np.round(sig_t, 6).tolist())
     return {"recent": [d.transformed(t_world) for d in ctx["recent"]], "registration": reg}

@@ -15,7 +15,8 @@ from ._icp import ScheduleParams, icp_schedule, registration_inputs, registratio
 class CoarseParams(ScheduleParams):
     """FPFH + RANSAC global alignment, refined by ICP."""
 
-    feature_voxel: PositiveFloat = Field(0.05, description="Voxel for the FPFH features and RANSAC, twin units.")
+    feature_voxel: PositiveFloat | None = Field(None, description="Voxel for the FPFH features and RANSAC, twin "
+                                                                  "units (default: the schedule's coarsest).")
     ransac_iterations: PositiveInt = Field(100_000, description="RANSAC iterations.")
     confidence: float = Field(0.999, gt=0, lt=1, description="RANSAC confidence.")
     refine: Literal["point_to_plane", "gicp"] = "point_to_plane"
@@ -27,10 +28,10 @@ def coarse(ctx: StageContext) -> dict[str, Any]:
 
     p = ctx.params
     reg = o3d.pipelines.registration
-    spacing = p.sample_spacing or p.voxels[-1] / 2
-    tgt, src = registration_inputs(ctx, spacing, "coarse")
+    inputs = registration_inputs(ctx, "coarse")
+    tgt, src, schedule = inputs.tgt, inputs.src, inputs.schedule
     origin = tgt.mean(axis=0)
-    v = p.feature_voxel
+    v = p.feature_voxel or schedule.voxels[0]
     feats = []
     for pts in (src, tgt):
         pcd = to_pcd(pts, origin).voxel_down_sample(v)
@@ -44,9 +45,10 @@ def coarse(ctx: StageContext) -> dict[str, Any]:
         [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
         reg.RANSACConvergenceCriteria(p.ransac_iterations, p.confidence))
     ctx.report(ransac_fitness=float(res.fitness), ransac_rmse=float(res.inlier_rmse))
-    t_local, fitness, rmse, dist = icp_schedule(src, tgt, p, p.refine, np.asarray(res.transformation), origin)
-    return registration_result(ctx, src, tgt, t_local, origin, fitness, rmse, dist, f"coarse+{p.refine}")
+    t_local, _, rmse, _ = icp_schedule(src, tgt, schedule, p.iterations, p.refine, np.asarray(res.transformation),
+                                       origin)
+    return registration_result(ctx, inputs, src, t_local, origin, rmse, f"coarse+{p.refine}")
 
 
-SPEC = family_stage("registrar", name="coarse", version="1.0.0", params=CoarseParams, run=coarse,
+SPEC = family_stage("registrar", name="coarse", version="2.0.0", params=CoarseParams, run=coarse,
                     description="FPFH + RANSAC global alignment refined by ICP, for data that starts far off.")

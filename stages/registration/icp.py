@@ -15,13 +15,13 @@ from ._icp import ScheduleParams, icp_schedule, registration_inputs, registratio
 def icp(ctx: StageContext, method: str) -> dict[str, Any]:
     """ICP of ``method`` (gicp or point_to_plane) from the initial transform, coarse to fine."""
     p = ctx.params
-    spacing = p.sample_spacing or p.voxels[-1] / 2
-    tgt, src = registration_inputs(ctx, spacing, method)
-    origin = tgt.mean(axis=0)
+    inputs = registration_inputs(ctx, method)
+    origin = inputs.tgt.mean(axis=0)
     init_world = np.eye(4) if p.initial is None else np.asarray(p.initial, dtype=np.float64)
     init_local = shifted(init_world, -origin)
-    t_local, fitness, rmse, dist = icp_schedule(src, tgt, p, method, init_local, origin)
-    return registration_result(ctx, src, tgt, t_local, origin, fitness, rmse, dist, method)
+    t_local, _, rmse, _ = icp_schedule(inputs.src, inputs.tgt, inputs.schedule, p.iterations, method, init_local,
+                                       origin)
+    return registration_result(ctx, inputs, inputs.src, t_local, origin, rmse, method)
 
 
 class GicpParams(ScheduleParams):
@@ -42,8 +42,8 @@ def point_to_plane(ctx: StageContext) -> dict[str, Any]:
     return icp(ctx, "point_to_plane")
 
 
-GICP = family_stage("registrar", name="gicp", version="1.0.0", params=GicpParams, run=gicp,
+GICP = family_stage("registrar", name="gicp", version="2.0.0", params=GicpParams, run=gicp,
                     description="Generalized-ICP to the twin's geometry, coarse to fine (Open3D).")
-POINT_TO_PLANE = family_stage("registrar", name="point_to_plane", version="1.0.0", params=PointToPlaneParams,
+POINT_TO_PLANE = family_stage("registrar", name="point_to_plane", version="2.0.0", params=PointToPlaneParams,
                               run=point_to_plane,
                               description="Point-to-plane ICP to the twin's geometry, coarse to fine (Open3D).")

@@ -27,8 +27,8 @@ class StableAreasParams(ScheduleParams):
 def stable_areas(ctx: StageContext) -> dict[str, Any]:
     """ICP on the recent points in the box, trimmed round by round of those on changed geometry."""
     p = ctx.params
-    spacing = p.sample_spacing or p.voxels[-1] / 2
-    tgt, src = registration_inputs(ctx, spacing, "stable_areas")
+    inputs = registration_inputs(ctx, "stable_areas")
+    tgt, src, schedule = inputs.tgt, inputs.src, inputs.schedule
     if p.box is not None:
         lo, hi = np.asarray(p.box[0]), np.asarray(p.box[1])
         src = src[np.all((src >= lo) & (src <= hi), axis=1)]
@@ -38,10 +38,9 @@ def stable_areas(ctx: StageContext) -> dict[str, Any]:
     t_local = shifted(np.eye(4) if p.initial is None else np.asarray(p.initial), -origin)
     tree = cKDTree(tgt - origin)
     kept = src
-    fitness = rmse = 0.0
-    dist = p.voxels[-1] * p.max_distance_factor
+    rmse = 0.0
     for round_ in range(p.trim_rounds + 1):
-        t_local, fitness, rmse, dist = icp_schedule(kept, tgt, p, p.method, t_local, origin)
+        t_local, _, rmse, _ = icp_schedule(kept, tgt, schedule, p.iterations, p.method, t_local, origin)
         if round_ == p.trim_rounds:
             break
         moved = (src - origin) @ t_local[:3, :3].T + t_local[:3, 3]
@@ -53,8 +52,8 @@ def stable_areas(ctx: StageContext) -> dict[str, Any]:
                      len(src), med + p.trim_k * robust)
         kept = src[keep]
     ctx.report(stable_points=len(kept), all_points=len(src))
-    return registration_result(ctx, kept, tgt, t_local, origin, fitness, rmse, dist, f"stable_areas+{p.method}")
+    return registration_result(ctx, inputs, kept, t_local, origin, rmse, f"stable_areas+{p.method}")
 
 
-SPEC = family_stage("registrar", name="stable_areas", version="1.0.0", params=StableAreasParams, run=stable_areas,
+SPEC = family_stage("registrar", name="stable_areas", version="2.0.0", params=StableAreasParams, run=stable_areas,
                     description="ICP on stable areas only (box, and trimming of changed points).")

@@ -70,7 +70,8 @@ def plane_covariance(moved: np.ndarray, target: np.ndarray, normals: np.ndarray)
         inv = np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:
         inv = np.full((6, 6), np.inf)
-    return r, sigma2 * inv
+    with np.errstate(invalid="ignore", over="ignore"):  # an unconstrained direction: inf or NaN, refused later
+        return r, sigma2 * inv
 
 
 def _matched(points: np.ndarray, tree: cKDTree, distance: float) -> tuple[np.ndarray, np.ndarray]:

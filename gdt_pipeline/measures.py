@@ -32,9 +32,11 @@ import numpy as np
 from pydantic import BaseModel
 
 from .compiled import njit
+from .coverage import reference_coverage
 from .geometry import sample_surface
 from .plugins import FAMILY_SLOTS, StageContext, StageSpec, family_stage
 from .types import Composite, Correspondences, Dataset, Scores, Uncertainty
+from .types.uncertainty import describe_model
 
 Counts = dict[str, dict[str, int]]
 
@@ -177,27 +179,42 @@ def _sample_offsets(u: Uncertainty, n: int, rng: np.random.Generator) -> np.ndar
     return u.sample(n, rng, 1)[:, 0, :]
 
 
-def null_simulator(groups: list[PairGroup] | list[PairSource], measure: PairMeasure) -> NullSimulator:
-    """Scores of unchanged pairs: both measurements of the same true position, each off by its own model's error."""
-    sizes = np.array([len(g.idx) for g in groups])
+class NullSimulation:
+    """Scores of unchanged pairs drawn from the groups' models (a ``NullSimulator``); ``models`` names them (a
+    Student t's ν included), for the threshold's report."""
 
-    def simulate(rng: np.random.Generator, n: int) -> np.ndarray:
+    def __init__(self, groups: list[PairGroup] | list[PairSource], measure: PairMeasure) -> None:
+        self.groups, self.measure = groups, measure
+        self.sizes = np.array([len(g.idx) for g in groups])
+
+    @property
+    def models(self) -> list[str]:
+        """Per distinct pair of models drawn from: "query model vs reference model"."""
+        return sorted({f"{describe_model(g.u_q)} vs {describe_model(g.u_r)}" for g in self.groups})
+
+    def __call__(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """``n`` scores of simulated unchanged pairs, the pairs drawn uniformly from the groups' pairs."""
+        sizes = self.sizes
         if sizes.sum() == 0:
             return np.zeros(0)
         pick = rng.integers(0, sizes.sum(), n)
         owner = np.searchsorted(np.cumsum(sizes), pick, side="right")
         out = []
         for g_i in np.unique(owner):
-            g = groups[g_i]
+            g = self.groups[g_i]
             local = pick[owner == g_i] - (sizes[:g_i].sum() if g_i else 0)
             sub = g.subset(local)
             truth = sub.mu_r
+            # each side off by a draw from its own model: a Student t's tail is drawn with it
             sim = g.subset(local, mu_q=truth + _sample_offsets(sub.u_q, len(local), rng),
                            mu_r=truth + _sample_offsets(sub.u_r, len(local), rng))
-            out.append(measure(sim, rng)[0])
+            out.append(self.measure(sim, rng)[0])
         return np.concatenate(out)
 
-    return simulate
+
+def null_simulator(groups: list[PairGroup] | list[PairSource], measure: PairMeasure) -> NullSimulator:
+    """Scores of unchanged pairs: both measurements of the same true position, each off by its own model's error."""
+    return NullSimulation(groups, measure)
 
 
 def _add_counts(total: Counts, counts: Mapping[str, Mapping[str, int]]) -> None:
@@ -239,7 +256,24 @@ def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: 
     if cand_p is not None:
         p_value = np.where(match >= 0, cand_p[np.maximum(match, 0)], np.nan)
     return Scores(query=corr.query, score=score, measure=name, p_value=p_value, tolerance=None,
-                  simulate=null_simulator(sources, measure), match=match), worst
+                  simulate=null_simulator(sources, measure), match=match,
+                  covered=unmatched_coverage(ctx, ds, score)), worst
+
+
+def unmatched_coverage(ctx: StageContext, ds: Dataset, score: np.ndarray) -> np.ndarray:
+    """Per element, whether the reference covers its place; judged for the elements without a score (the others
+    were compared, so the reference had data there), their neighbourhoods declared for tiles."""
+    covered = np.ones(len(score), dtype=bool)
+    unmatched = np.flatnonzero(np.isnan(score))
+    if unmatched.size == 0:
+        return covered
+    positions = ds.element_positions()[unmatched]
+    scale = np.zeros(len(unmatched)) if ds.uncertainty is None else np.broadcast_to(
+        ds.uncertainty.region99(ds.n_elements).bounding_radius(), (ds.n_elements,))[unmatched]
+    found = reference_coverage(ctx["reference"], positions, scale)
+    ctx.neighbourhoods(positions, found.looked)
+    covered[unmatched] = found.covered
+    return covered
 
 
 def run_pair_measure(ctx: StageContext, name: str, measure: PairMeasure, tolerance: float | None = None,

@@ -6,7 +6,8 @@ Model, per point at range r with incidence angle θ (between the beam and the su
     σ_lateral(r)    = b0 + b1·r                                              across the beam, both directions
 
 Σ = σ_range² d dᵀ + σ_lateral² (I − d dᵀ), with d the unit beam direction. A profile from ``gdt calibrate`` is
-isotropic (a1 = a2 = b1 = 0, a0 = b0 = σ), which is the paper's calibrated model for the Artec Eva.
+isotropic (a1 = a2 = b1 = 0, a0 = b0 = σ), which is the paper's calibrated model for the Artec Eva. With ``dof``
+the noise is a Student t (heavy tails, ``gdt_pipeline.tails``) and Σ, built the same way, is its scale matrix.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from .errors import GdtError
 from .names import UNITS as UNITS_M
 from .names import Units
+from .tails import TailFit, choose_tail
 from .types import Dataset
 
 
@@ -37,6 +39,8 @@ class SensorProfile(BaseModel):
                                      description="a0, a1, a2 of σ_range = a0 + a1·r + a2·r² (profile units)")
     lateral_sigma: list[float] = Field(min_length=2, max_length=2, description="b0, b1 of σ_lateral = b0 + b1·r")
     min_cos_incidence: float = Field(0.2, gt=0, le=1, description="Floor of cos θ in the incidence scaling.")
+    dof: float | None = Field(None, gt=0, description="Student t degrees of freedom of heavy-tailed noise (the σ "
+                                                        "terms are then the t's scale); none: Gaussian.")
     calibration: dict[str, Any] | None = Field(None, description="How the profile was estimated (gdt calibrate).")
 
     @field_validator("range_sigma", "lateral_sigma")
@@ -129,15 +133,16 @@ def save_profile(profile: SensorProfile, path: Path) -> Path:
     """Write a profile as YAML (readable, diffable, reusable in workflows)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("# gdt sensor profile\n" + yaml.safe_dump(profile.model_dump(mode="json"), sort_keys=False),
-                   encoding="utf-8")
+    text = yaml.safe_dump(profile.model_dump(mode="json"), sort_keys=False, allow_unicode=True)
+    tmp.write_text("# gdt sensor profile\n" + text, encoding="utf-8")
     tmp.replace(path)
     return path
 
 
 @dataclass(frozen=True)
 class Calibration:
-    """Result of calibrating a scanner against a known reference: robust noise along the surface normal."""
+    """Result of calibrating a scanner against a known reference: robust noise along the surface normal, and the
+    heavy-tail fit that decides between a Gaussian (σ from the MAD) and a Student t (its ML scale and ν)."""
 
     sigma: float
     bias: float
@@ -146,10 +151,24 @@ class Calibration:
     median_abs: float
     p95_abs: float
     max_abs: float
+    tail: TailFit | None = None
+
+    @property
+    def profile_sigma(self) -> float:
+        """The profile's σ: the t's scale when the t was chosen, else the robust Gaussian σ."""
+        return self.tail.scale if self.tail is not None and self.tail.heavy else self.sigma
+
+    @property
+    def dof(self) -> float | None:
+        """The profile's ν: the t's when it was chosen, else None (Gaussian)."""
+        return self.tail.dof if self.tail is not None and self.tail.heavy else None
 
     def record(self) -> dict[str, Any]:
         """As plain data for a profile's ``calibration`` field."""
-        return {k: (float(v) if isinstance(v, float | np.floating) else v) for k, v in self.__dict__.items()}
+        out = {k: (float(v) if isinstance(v, float | np.floating) else v) for k, v in self.__dict__.items()
+               if k != "tail"}
+        return {**out, "p95_abs_over_sigma": self.p95_abs / self.sigma if self.sigma > 0 else float("nan"),
+                **({} if self.tail is None else {"tail": self.tail.record()})}
 
 
 def signed_distances(reference: Dataset, points: np.ndarray) -> np.ndarray:
@@ -171,7 +190,8 @@ def signed_distances(reference: Dataset, points: np.ndarray) -> np.ndarray:
 
 
 def calibrate(reference: Dataset, scans: list[Dataset], *, max_distance: float | None = None) -> Calibration:
-    """Estimate a scanner's σ from point-to-mesh distances of scans of a known object (median/MAD, robust)."""
+    """Estimate a scanner's σ from point-to-mesh distances of scans of a known object (median/MAD, robust), and
+    whether a Student t fits them better (``gdt_pipeline.tails``)."""
     pts = np.concatenate([s.points for s in scans])
     d = signed_distances(reference, pts)
     used = np.isfinite(d) if max_distance is None else np.isfinite(d) & (np.abs(d) <= max_distance)
@@ -182,7 +202,7 @@ def calibrate(reference: Dataset, scans: list[Dataset], *, max_distance: float |
     sigma = 1.4826 * float(np.median(np.abs(du - med)))  # MAD of a normal sample: σ·0.6745
     return Calibration(sigma=sigma, bias=med, n_points=len(d), n_used=int(used.sum()),
                        median_abs=float(np.median(np.abs(du))), p95_abs=float(np.percentile(np.abs(du), 95)),
-                       max_abs=float(np.max(np.abs(du))))
+                       max_abs=float(np.max(np.abs(du))), tail=choose_tail(du))
 
 
 def file_digest(path: Path) -> str:

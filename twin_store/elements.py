@@ -17,6 +17,8 @@ from . import names
 from .errors import TwinStoreError
 from .names import TWIN_PRIM, state_colours
 
+DOC_DOF = ("Student t degrees of freedom per element of a heavy-tailed gaussian uncertainty (a Gaussian scale "
+           "mixture); gdt:covariance then holds the t's scale matrix, not its covariance.")
 # name -> (value type, interpolation, array, element size, documentation)
 Primvars = dict[str, tuple[Any, Any, np.ndarray, int, str | None]]
 
@@ -51,6 +53,7 @@ class ElementSet:
     intensity: np.ndarray | None = None  # (E,) return intensity from the scan file
     scan_color: np.ndarray | None = None  # (E,3) colour from the scan file, 0..1
     identity: dict[str, str] | None = None  # who the set is outside the twin (IFC GlobalId and class, part name)
+    dof: np.ndarray | None = None  # (E,) Student t degrees of freedom of a heavy-tailed gaussian (covariance: scale)
 
     def __post_init__(self) -> None:
         if not Tf.IsValidIdentifier(self.key):
@@ -73,7 +76,7 @@ class ElementSet:
         shapes = {"uncertainty_summary": (n,), "state": (n,), "score": (n,), "source_epoch": (n,), "visible": (n,),
                   "covariance": (n, 6), "half_widths": (n, 3), "rotation": (n, 3, 3), "ids": (n,),
                   "display_color": (n, 3), "p_value": (n,), "reason": (n,), "reason_ratio": (n,),
-                  "area_seen": (n,), "area_removed": (n,), "intensity": (n,), "scan_color": (n, 3)}
+                  "area_seen": (n,), "area_removed": (n,), "intensity": (n,), "scan_color": (n, 3), "dof": (n,)}
         for name, shape in shapes.items():
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
@@ -142,6 +145,8 @@ def primvar_values(es: ElementSet) -> Primvars:
     if es.scan_color is not None:
         out["gdt:scanColor"] = (types.Color3fArray, interp, np.asarray(es.scan_color, np.float32), 1,
                                 names.DOC_SCAN_COLOR)
+    if es.dof is not None:
+        out["gdt:studentDof"] = (types.FloatArray, interp, np.asarray(es.dof, np.float32), 1, DOC_DOF)
     if es.rotation is not None:
         out["gdt:rotation"] = (types.FloatArray, interp, np.asarray(es.rotation, dtype=np.float32).reshape(-1), 9,
                                names.DOC_ROTATION)
@@ -312,7 +317,8 @@ def read_element_set(prim: Usd.Prim) -> ElementSet:
         p_value=pv("gdt:pValue", np.float32), reason=pv("gdt:fusionReason", np.uint8),
         reason_ratio=pv("gdt:fusionRatio", np.float32), area_seen=pv("gdt:areaSeen", np.float32),
         area_removed=pv("gdt:areaRemoved", np.float32), intensity=pv("gdt:intensity", np.float32),
-        scan_color=pv("gdt:scanColor", np.float32, (-1, 3)), identity=identity_of(prim))
+        scan_color=pv("gdt:scanColor", np.float32, (-1, 3)), identity=identity_of(prim),
+        dof=pv("gdt:studentDof", np.float32))
 
 
 def identity_of(prim: Usd.Prim) -> dict[str, str] | None:

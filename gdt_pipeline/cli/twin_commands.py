@@ -204,13 +204,22 @@ def calibrate(reference: Path, scans: tuple[Path, ...], units: str, max_distance
     cal = run_calibration(ref, data, max_distance=max_distance)
     record = {**cal.record(), "reference": {"path": str(reference), "sha256": file_digest(reference)},
               "scans": [{"path": str(p), "sha256": file_digest(p)} for p in scans],
-              "method": "1.4826 * median absolute deviation of signed point-to-mesh distances (Open3D)"}
-    profile = SensorProfile(name=name, units=units, range_sigma=[cal.sigma, 0.0, 0.0], lateral_sigma=[cal.sigma, 0.0],
-                            description=f"Isotropic noise calibrated against {reference.name} from {len(scans)} "
-                                        f"scan(s) ({cal.n_used} points).", calibration=record)
+              "method": "1.4826 * median absolute deviation of signed point-to-mesh distances (Open3D); a Student t "
+                        "fitted by maximum likelihood replaces it where BIC says so (tail)"}
+    sigma, dof = cal.profile_sigma, cal.dof
+    noise = "Gaussian" if dof is None else f"Student t (ν {dof:.3g}, σ its scale)"
+    profile = SensorProfile(name=name, units=units, range_sigma=[sigma, 0.0, 0.0], lateral_sigma=[sigma, 0.0],
+                            dof=dof, calibration=record,
+                            description=f"Isotropic {noise} noise calibrated against {reference.name} from "
+                                        f"{len(scans)} scan(s) ({cal.n_used} points).")
     save_profile(profile, output)
     click.echo(f"sigma {cal.sigma:.6g} {units} (bias {cal.bias:+.3g}, median |d| {cal.median_abs:.3g}, p95 "
-               f"{cal.p95_abs:.3g}, {cal.n_used} of {cal.n_points} points); profile written to {output}")
+               f"{cal.p95_abs:.3g} = {cal.p95_abs / cal.sigma:.2f} sigma, {cal.n_used} of {cal.n_points} points)")
+    if cal.tail is not None:
+        chosen = "Student t" if cal.tail.heavy else "Gaussian"
+        click.echo(f"model: {chosen}: {cal.tail.record()['why']}"
+                   + (f"; t scale {cal.tail.scale:.6g} {units}" if cal.tail.heavy else ""))
+    click.echo(f"profile written to {output}")
 
 
 @click.command()

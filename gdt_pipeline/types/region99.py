@@ -10,6 +10,14 @@ CHI2_3_99 = 11.344866730144373  # chi-square quantile, 3 degrees of freedom, p =
 BOX_99 = 0.99 ** (1.0 / 3.0)  # a centred box scaled by this holds 99 % of a uniform box's mass
 
 
+def t3_radius2_99(dof: float) -> float:
+    """Squared radius, in scale units, of the 3-D Student t's 99 % ellipsoid: its squared Mahalanobis distance over 3
+    follows F(3, ν), so 3·F⁻¹(0.99; 3, ν) (χ²₃(0.99) = 11.34 as ν → ∞; 50.1 at ν = 4, 297 at ν = 2)."""
+    from scipy.stats import f  # type: ignore[import-untyped]  # here: scipy.stats costs a quarter of a second to import
+
+    return float(3.0 * f.ppf(0.99, 3.0, dof))
+
+
 @dataclass(frozen=True)
 class Region99:
     """The 99 % probability region of each element's distribution, as offsets from the element's position.

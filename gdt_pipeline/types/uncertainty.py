@@ -5,6 +5,7 @@ the twin stores of it. ``model`` names the distribution as the twin stores it (`
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -12,7 +13,7 @@ from typing import Literal
 import numpy as np
 
 from .arrays import broadcast_rows, covariance6, frozen_array
-from .region99 import BOX_99, CHI2_3_99, Region99
+from .region99 import BOX_99, CHI2_3_99, Region99, t3_radius2_99
 
 
 def _psd_factor(cov: np.ndarray) -> np.ndarray:
@@ -40,10 +41,18 @@ def _gauss_pdf(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class GaussianUncertainty:
-    """Multivariate normal positional uncertainty per element: full 3x3 covariances ``(N,3,3)`` or one ``(1,3,3)``."""
+    """Multivariate normal positional uncertainty per element: full 3x3 covariances ``(N,3,3)`` or one ``(1,3,3)``.
+
+    With ``dof`` (ν, one for the model) it is a Gaussian scale mixture, the multivariate Student t: an offset is
+    ``L z · sqrt(ν / χ²_ν)`` with ``L Lᵀ = cov``. ``cov`` then holds the t's scale matrix Σ, not its covariance
+    (ν/(ν−2)·Σ, infinite for ν ≤ 2: real scanners' residuals come out near ν = 2). ``covariance`` returns Σ, the
+    Gaussian core that the measures score with (their closed forms stay exact for the core); ``sample``, ``pdf`` and
+    ``region99`` are the t's, so a null simulation draws the tail (docs/uncertainty.md).
+    """
 
     cov: np.ndarray
     model: Literal["gaussian"] = field(default="gaussian", init=False)
+    dof: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "cov", frozen_array(self.cov, np.float64, (None, 3, 3), "gaussian covariance"))
@@ -51,12 +60,16 @@ class GaussianUncertainty:
             raise ValueError("gaussian covariance has non-finite entries")
         if not np.allclose(self.cov, np.swapaxes(self.cov, 1, 2), rtol=1e-9, atol=1e-15):
             raise ValueError("gaussian covariance is not symmetric")
+        if self.dof is not None:
+            if not np.isfinite(self.dof) or self.dof <= 0:
+                raise ValueError(f"student t degrees of freedom must be finite and > 0, got {self.dof}")
+            object.__setattr__(self, "dof", float(self.dof))
 
     @classmethod
-    def isotropic(cls, sigma: float | np.ndarray) -> GaussianUncertainty:
-        """Isotropic covariance sigma² I, for one sigma or one per element."""
+    def isotropic(cls, sigma: float | np.ndarray, dof: float | None = None) -> GaussianUncertainty:
+        """Isotropic covariance (scale, with ``dof``) sigma² I, for one sigma or one per element."""
         s = np.atleast_1d(np.asarray(sigma, dtype=np.float64))
-        return cls(cov=(s**2)[:, None, None] * np.eye(3)[None])
+        return cls(cov=(s**2)[:, None, None] * np.eye(3)[None], dof=dof)
 
     @property
     def rows(self) -> int:
@@ -64,12 +77,12 @@ class GaussianUncertainty:
         return int(self.cov.shape[0])
 
     def covariance(self, n: int) -> np.ndarray:
-        """Covariances broadcast to ``(n,3,3)`` (a view when a single one is shared)."""
+        """Covariances (a t's scale matrices) broadcast to ``(n,3,3)`` (a view when a single one is shared)."""
         broadcast_rows(self.cov, n, "gaussian covariance")
         return np.broadcast_to(self.cov, (n, 3, 3))
 
     def summary(self, n: int) -> np.ndarray:
-        """RMS standard deviation per element, sqrt(trace(Σ)/3): a scalar for display and reports."""
+        """RMS standard deviation (a t's scale) per element, sqrt(trace(Σ)/3): a scalar for display and reports."""
         broadcast_rows(self.cov, n, "gaussian covariance")
         return np.broadcast_to(np.sqrt(np.trace(self.cov, axis1=1, axis2=2) / 3.0), (n,))
 
@@ -82,47 +95,83 @@ class GaussianUncertainty:
         cov = self.cov[idx]
         cov.setflags(write=False)
         object.__setattr__(out, "cov", cov)
+        object.__setattr__(out, "dof", self.dof)
         return out
 
     def repeated(self, n: int) -> GaussianUncertainty:
         """The model with one row per element of ``n`` (a shared one repeated)."""
-        return self if self.rows == n else GaussianUncertainty(np.repeat(self.cov, n, axis=0))
+        return self if self.rows == n else GaussianUncertainty(np.repeat(self.cov, n, axis=0), dof=self.dof)
 
     @staticmethod
     def stacked(parts: Sequence[GaussianUncertainty]) -> GaussianUncertainty:
-        """The rows of ``parts`` one after the other."""
-        return GaussianUncertainty(np.concatenate([p.cov for p in parts]))
+        """The rows of ``parts`` one after the other (they must share their ``dof``)."""
+        dofs = {p.dof for p in parts}
+        if len(dofs) > 1:
+            raise ValueError(f"gaussian parts with different student t degrees of freedom cannot be stacked: "
+                             f"{sorted(dofs, key=lambda d: -1.0 if d is None else d)}")
+        return GaussianUncertainty(np.concatenate([p.cov for p in parts]), dof=parts[0].dof)
 
     def rotated(self, rot: np.ndarray) -> GaussianUncertainty:
         """The model turned by the rotation ``rot`` (3,3): R Σ Rᵀ."""
-        return GaussianUncertainty(rot[None] @ self.cov @ rot.T[None])
+        return GaussianUncertainty(rot[None] @ self.cov @ rot.T[None], dof=self.dof)
 
     def moment_matched(self, n: int) -> GaussianUncertainty:
-        """The Gaussian of equal covariance: the model itself."""
-        return self
+        """The Gaussian of equal covariance: the model itself; a t's Gaussian core (scale Σ: for ν ≤ 2 no Gaussian
+        has its covariance, and the measures score every t by its core)."""
+        return self if self.dof is None else GaussianUncertainty(self.cov)
 
     def stored(self, n: int) -> dict[str, np.ndarray]:
-        """What the twin stores of the model for ``n`` elements: the packed covariances."""
-        return {"covariance": covariance6(self.covariance(n))}
+        """What the twin stores of the model for ``n`` elements: the packed covariances (a t's scale matrices) and,
+        for a t, its degrees of freedom per element."""
+        out = {"covariance": covariance6(self.covariance(n))}
+        if self.dof is not None:
+            out["dof"] = np.full(n, self.dof)
+        return out
+
+    def _t_weights(self, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
+        """sqrt(ν/χ²_ν) per draw: the scale mixture's factor (1 for a Gaussian)."""
+        if self.dof is None:
+            return np.ones(shape)
+        return np.asarray(np.sqrt(self.dof / rng.chisquare(self.dof, shape)))
 
     def sample(self, n: int, rng: np.random.Generator, k: int = 1) -> np.ndarray:
-        """``k`` random offsets per element, ``(n,k,3)``."""
+        """``k`` random offsets per element, ``(n,k,3)`` (Student t with ``dof``: one χ² per 3-D draw)."""
         factor = np.broadcast_to(_psd_factor(self.cov), (n, 3, 3))
-        return np.asarray(np.einsum("nij,nkj->nki", factor, rng.standard_normal((n, k, 3))))
+        draws = np.einsum("nij,nkj->nki", factor, rng.standard_normal((n, k, 3)))
+        if self.dof is not None:
+            draws = draws * self._t_weights((n, k), rng)[..., None]
+        return np.asarray(draws)
 
     def pdf(self, offsets: np.ndarray) -> np.ndarray:
         """Density of each element's distribution at an ``(n,3)`` offset from its position."""
         d = np.asarray(offsets, dtype=np.float64)
+        if self.dof is not None:
+            return _t_pdf_many(d[:, None, :], self.covariance(len(d)), self.dof)[:, 0]
         return _gauss_pdf(d, self.covariance(len(d)))
 
     def pdf_many(self, offsets: np.ndarray) -> np.ndarray:
         """Densities at ``(n,S,3)`` offsets, S per element (one factorisation per element)."""
-        return _gauss_pdf_many(np.asarray(offsets, dtype=np.float64), self.covariance(len(offsets)))
+        d = np.asarray(offsets, dtype=np.float64)
+        if self.dof is not None:
+            return _t_pdf_many(d, self.covariance(len(offsets)), self.dof)
+        return _gauss_pdf_many(d, self.covariance(len(offsets)))
 
     def region99(self, n: int) -> Region99:
-        """The 99 % ellipsoid of each element (radii from the chi-square quantile with 3 degrees of freedom)."""
+        """The 99 % ellipsoid of each element (radii from the chi-square quantile with 3 degrees of freedom; for a t
+        from 3·F(0.99; 3, ν), wider: the tail needs a longer reach)."""
         w, v = np.linalg.eigh(self.covariance(n))
-        return Region99("ellipsoid", np.zeros((n, 3)), np.sqrt(CHI2_3_99 * np.clip(w, 0.0, None)), v)
+        r2 = CHI2_3_99 if self.dof is None else t3_radius2_99(self.dof)
+        return Region99("ellipsoid", np.zeros((n, 3)), np.sqrt(r2 * np.clip(w, 0.0, None)), v)
+
+
+def _t_pdf_many(d: np.ndarray, scale: np.ndarray, dof: float) -> np.ndarray:
+    """The 3-D Student t density t_ν(d; 0, Σ) for ``d (n,S,3)`` and scale matrices ``scale (n,3,3)``."""
+    chol = np.linalg.cholesky(scale)
+    y = np.einsum("nij,nsj->nsi", np.linalg.inv(chol), d)
+    logdet = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(axis=-1)
+    m2 = np.einsum("nsi,nsi->ns", y, y)
+    const = math.lgamma((dof + 3) / 2) - math.lgamma(dof / 2) - 1.5 * math.log(dof * math.pi)
+    return np.asarray(np.exp(const - 0.5 * logdet[:, None] - 0.5 * (dof + 3) * np.log1p(m2 / dof)))
 
 
 @dataclass(frozen=True)
@@ -366,6 +415,13 @@ class MixtureUncertainty:
 
 
 Uncertainty = GaussianUncertainty | BoxUncertainty | MixtureUncertainty
+
+
+def describe_model(u: Uncertainty) -> str:
+    """The model's name for reports: gaussian, student_t(ν=…), box or mixture."""
+    if isinstance(u, GaussianUncertainty) and u.dof is not None:
+        return f"student_t(nu={u.dof:.4g})"
+    return u.model
 
 
 def same_model(a: Uncertainty, b: Uncertainty) -> bool:

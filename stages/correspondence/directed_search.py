@@ -99,8 +99,10 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
             parts.append(point_to_mesh(qpos, qcov, ref_mesh, p.search_sigmas, extra_var, element))
         corr = to_correspondences(qi, ds.n_elements, parts, name)
         if ds.name in expected:
+            # a heavy-tailed (Student t) query keeps its ν: exact where a point kept its own value, conservative
+            # for a pooled mean (lighter-tailed than its points)
             corr = dataclasses.replace(corr, query_uncertainty=GaussianUncertainty(
-                expected[ds.name].covariance[corr.element]))
+                expected[ds.name].covariance[corr.element], dof=getattr(ds.uncertainty, "dof", None)))
         elif ds.faces is None:  # the queries are the points themselves: no copy of them per candidate (24 B each)
             corr = dataclasses.replace(corr, query_position=None)
         matched = int(corr.element_found().sum())

@@ -1,4 +1,5 @@
-"""``calibrated``: the isotropic σ of a profile written by ``gdt calibrate`` (scans of a known object)."""
+"""``calibrated``: the isotropic σ of a profile written by ``gdt calibrate`` (scans of a known object); a profile with
+``dof`` gives a Student t of that scale (heavy tails), one without it a Gaussian."""
 
 from __future__ import annotations
 
@@ -23,11 +24,15 @@ class CalibratedParams(BaseModel):
 
 
 def calibrated(ctx: StageContext) -> dict[str, Any]:
-    """Every selected recent dataset gets the profile's isotropic σ."""
+    """Every selected recent dataset gets the profile's isotropic σ (a Student t's scale when it has ``dof``)."""
     profile = load_profile(ctx.params.profile, ctx.epoch.workflow_dir)
     units = ctx.epoch.units
-    unc = GaussianUncertainty.isotropic(profile.isotropic_sigma(units))
-    ctx.log.info("calibrated sigma %.6g %s from profile %s", float(np.sqrt(unc.cov[0, 0, 0])), units, profile.name)
+    unc = GaussianUncertainty.isotropic(profile.isotropic_sigma(units), dof=profile.dof)
+    noise = "gaussian" if profile.dof is None else f"student t, nu {profile.dof:.4g}, scale"
+    ctx.log.info("calibrated %s sigma %.6g %s from profile %s", noise, float(np.sqrt(unc.cov[0, 0, 0])), units,
+                 profile.name)
+    ctx.report(model="gaussian" if profile.dof is None else "student_t", dof=profile.dof,
+               sigma=float(np.sqrt(unc.cov[0, 0, 0])))
     return {"recent": map_selected(ctx, lambda d: d.with_uncertainty(unc))}
 
 
@@ -36,6 +41,7 @@ def profile_problems_isotropic(params: CalibratedParams, base: Path) -> list[tup
     return [("profile", m) for m in profile_problems(params.profile, base, isotropic=True)]
 
 
-SPEC = family_stage("uncertainty", name="calibrated", version="1.0.0", params=CalibratedParams, run=calibrated,
+SPEC = family_stage("uncertainty", name="calibrated", version="1.1.0", params=CalibratedParams, run=calibrated,
                     validate=profile_problems_isotropic, tiling="tile",
-                    description="Isotropic σ of a profile from `gdt calibrate` (scans of a known object).")
+                    description="Isotropic σ of a profile from `gdt calibrate` (scans of a known object); a "
+                                "Student t where the profile has heavy tails (dof).")

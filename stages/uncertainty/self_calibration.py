@@ -14,6 +14,8 @@ both (``common``): along a surface's normal the lateral terms weigh about 1 % of
 incidences, too little to tell their scale apart; ``separate`` fits two where the data hold grazing views. The shape
 of each term (how it grows with range, the incidence floor) stays the prior's: those are poorly determined by one
 epoch's 3-4 m of ranges, their scale is not. Too few points on known surfaces: the prior stays, with a warning.
+Where BIC prefers it (``gdt_pipeline.tails``), a Student t with the same uniform class replaces the Gaussian: the
+profile gets its ν (``dof``) and the scales its scale, and the record says which model was chosen and why.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from gdt_pipeline.sensors import SensorProfile
+from gdt_pipeline.tails import choose_tail
 
 log = logging.getLogger(__name__)
 
@@ -133,17 +136,22 @@ def calibrate_profile(prior: SensorProfile, data: FitData, min_points: int, sepa
         log.warning("self-calibration: %s", why)
         return SelfCalibration(prior, 1.0, 1.0, {"fitted": False, "why": why, "points": len(data.distance)})
     log_scales, outlier, rounds = em_fit(data, separate)
+    # heavy tails: a Student t (with the same uniform class) against the Gaussian just fitted, chosen by BIC
+    tail = choose_tail(data.distance, v=_variance(log_scales, data), half_width=data.cutoff,
+                       gaussian=(0.0, 1.0, outlier), fit_location=False)
+    if tail.heavy:  # the t's scale factor on the fitted σ: the scanner's terms carry it (Σ_ref's share is small)
+        log_scales = log_scales + np.log(tail.scale)
     s_r, s_l = (float(x) for x in np.exp(log_scales))
     z = data.distance / np.sqrt(_variance(log_scales, data))
     inlying = np.abs(z) < 3.0
     fitted = prior.model_copy(update={
         "name": f"{prior.name}_self_calibrated", "range_sigma": [c * s_r for c in prior.range_sigma],
-        "lateral_sigma": [c * s_l for c in prior.lateral_sigma],
+        "lateral_sigma": [c * s_l for c in prior.lateral_sigma], "dof": tail.dof if tail.heavy else None,
         "description": f"{prior.name} with its range terms × {s_r:.4g} and lateral terms × {s_l:.4g}, fitted to an "
                        f"epoch's points on the known scene (sensor_model self_calibrate)"})
     record = {"fitted": True, "prior": prior.name, "terms": "separate" if separate else "common",
               "range_scale": s_r, "lateral_scale": s_l,
-              "points": len(z), "outlier_share": outlier, "em_rounds": rounds,
+              "points": len(z), "outlier_share": outlier, "em_rounds": rounds, "tail": tail.record(),
               "bias": float(np.median(data.distance[inlying])) if inlying.any() else float("nan"),
               "normalized_rms": float(np.sqrt(np.mean(z[inlying] ** 2))) if inlying.any() else float("nan"),
               "median_abs_z": float(np.median(np.abs(z))),

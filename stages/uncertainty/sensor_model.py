@@ -104,7 +104,8 @@ def sensor_model(ctx: StageContext) -> dict[str, Any]:
         beam_range = np.linalg.norm(pos - origin, axis=1)
         cos = incidence_cosines(ctx, ds, origin, profile, facets, on_twin) if ctx.params.incidence else None
         s_range, s_lat = profile.sigmas(beam_range, cos, units)
-        return ds.with_uncertainty(GaussianUncertainty(beam_covariances(pos, origin, s_range, s_lat)))
+        return ds.with_uncertainty(GaussianUncertainty(beam_covariances(pos, origin, s_range, s_lat),
+                                                         dof=profile.dof))
 
     recent = map_selected(ctx, estimate)
     if on_twin:
@@ -138,7 +139,7 @@ def profile_problems_any(params: SensorModelParams, base: Path) -> list[tuple[st
     return [("profile", m) for m in profile_problems(params.profile, base)]
 
 
-SPEC = family_stage("uncertainty", name="sensor_model", version="1.0.0", params=SensorModelParams, run=sensor_model,
+SPEC = family_stage("uncertainty", name="sensor_model", version="1.1.0", params=SensorModelParams, run=sensor_model,
                     validate=profile_problems_any, survey=sensor_survey, optional=("reference",), tiling="tile",
                     description="Per-point covariance from sensor pose, range and incidence (preset or profile), "
                                 "optionally self-calibrated against the twin's meshes.")

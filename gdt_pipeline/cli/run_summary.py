@@ -1,5 +1,6 @@
-"""The screen `gdt run` ends with: per epoch what changed (elements by state, segments), where the time went (seconds
-per stage), and where the report is; read back from the twin that was written, so it says what the twin holds."""
+"""The screen `gdt run` ends with: per epoch what changed (elements by state, segments), what a registrar found (the
+transform, its σ, fitness, overlap and warnings), where the time went (seconds per stage), and where the report is;
+read back from the twin that was written, so it says what the twin holds."""
 
 from __future__ import annotations
 
@@ -65,9 +66,36 @@ def stage_table(store: Any) -> Table:
     return table
 
 
+def _xyz(values: Any, digits: int) -> str:
+    return "(" + ", ".join(f"{float(v):.{digits}f}" for v in values) + ")" if values else "-"
+
+
+def registration_table(store: Any) -> Table | None:
+    """One row per epoch a registrar fitted: the transform (rotation, shift at the data's centre) with its σ, the
+    fitness and overlap, and what it warned of; None when no epoch was registered by a fit."""
+    table = Table(title="registration", title_justify="left")
+    for name, justify in (("epoch", "left"), ("method", "left"), ("rotation °", "right"), ("σ rotation °", "right"),
+                          ("shift at centre", "right"), ("σ shift", "right"), ("fitness", "right"),
+                          ("overlap", "right"), ("warnings", "left")):
+        table.add_column(name, justify=justify)
+    for eid in store.epochs():
+        prov = store.provenance(eid)
+        reg = prov.get("registration") or {}
+        rep = next((st.get("report") or {} for st in prov.get("stages", []) if st.get("family") == "registrar"), {})
+        if "rotation_deg" not in rep:
+            continue  # identity, given, or no registrar: nothing was fitted
+        table.add_row(eid, str(reg.get("method", "")), f"{rep['rotation_deg']:.4f}",
+                      _xyz(rep.get("sigma_rotation_deg"), 4), _xyz(rep.get("shift_at_center"), 3),
+                      _xyz(rep.get("sigma_translation"), 3), f"{float(rep.get('fitness', 0.0)):.3f}",
+                      f"{float(rep.get('overlap', float('nan'))):.3f}", "; ".join(rep.get("warnings") or []) or "-")
+    return table if table.row_count else None
+
+
 def run_summary(twin: Path) -> Group:
-    """The end-of-run screen for the twin at ``twin``: what changed per epoch, and the time per stage."""
+    """The end-of-run screen for the twin at ``twin``: what changed per epoch, the registrations, and the time per
+    stage."""
     from twin_store import TwinStore
 
     store = TwinStore.open(twin)
-    return Group(change_table(store), stage_table(store))
+    reg = registration_table(store)
+    return Group(change_table(store), *([reg] if reg is not None else []), stage_table(store))

@@ -118,5 +118,5 @@ def test_a_threshold_from_the_t_null_reaches_its_rate_on_t_data() -> None:
         assert null.models == [f"{'student_t(nu=3)' if name == 't' else 'gaussian'} vs box"]
         tau = float(np.quantile(null(rng, 20_000), 0.99))
         rates[name] = float(np.mean(observed > tau))
-    assert rates["t"] == pytest.approx(0.01, rel=0.2)  # measured 0.0102
-    assert rates["gaussian"] > 0.03  # the Gaussian null on t data: several times the rate asked for
+    assert rates["t"] == pytest.approx(0.01, rel=0.2)  # measured 0.0104
+    assert rates["gaussian"] > 0.05  # measured 0.129: the Gaussian null on t data, 13 times the rate asked for

@@ -1,5 +1,6 @@
 """False alarms of a bunny twin (workflows/real/bunny.yaml): per scan, the share flagged among the points that got a
-score, and where the points without a correspondence (NaN score) lie.
+score and among every decided point (scored, or new for want of a correspondence), where the points without a
+correspondence (NaN score) lie, and how many are not comparable (no mesh surface at their place).
 
     .venv/bin/gdt run workflows/real/bunny.yaml --twin /tmp/bunny --no-report --overwrite
     .venv/bin/python bench/bunny_false_alarms.py /tmp/bunny
@@ -14,7 +15,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-NEW = 1  # gdt_pipeline.types.states.ChangeState.NEW
+NEW, NOT_COMPARABLE = 1, 4  # gdt_pipeline.types.states.ChangeState
 
 
 def scan_figures(points: np.ndarray, score: np.ndarray, state: np.ndarray) -> dict[str, Any]:
@@ -25,7 +26,8 @@ def scan_figures(points: np.ndarray, score: np.ndarray, state: np.ndarray) -> di
     border = spacing >= np.quantile(spacing, 0.9)
     unscored = ~scored
     return {"points": len(score), "scored": int(scored.sum()), "flagged": int(np.sum(scored & (state == NEW))),
-            "unscored": int(unscored.sum()),
+            "unscored": int(unscored.sum()), "decided": int(np.sum(state != NOT_COMPARABLE)),
+            "flagged_decided": int(np.sum(state == NEW)), "not_comparable": int(np.sum(state == NOT_COMPARABLE)),
             "unscored_on_border": int(np.sum(unscored & border))}
 
 
@@ -53,11 +55,14 @@ def main() -> None:
     args = ap.parse_args()
     rows = twin_figures(args.twin)
     total = {k: sum(r[k] for r in rows.values()) for k in next(iter(rows.values()))}
-    head = ("scan", "points", "scored", "flagged", "share", "unscored", "on border")
-    print(f"{head[0]:10s} " + " ".join(f"{h:>7s}" for h in head[1:]))
+    head = ("scan", "points", "scored", "flagged", "share", "unscored", "on border", "decided", "flagged",
+            "share", "not comp.")
+    print(f"{head[0]:10s} " + " ".join(f"{h:>9s}" for h in head[1:]))
     for name, r in [*rows.items(), ("all", total)]:
-        print(f"{name:10s} {r['points']:7d} {r['scored']:7d} {r['flagged']:7d} {r['flagged'] / r['scored']:7.2%} "
-              f"{r['unscored']:8d} {r['unscored_on_border'] / max(r['unscored'], 1):9.1%}")
+        print(f"{name:10s} {r['points']:9d} {r['scored']:9d} {r['flagged']:9d} {r['flagged'] / r['scored']:9.2%} "
+              f"{r['unscored']:9d} {r['unscored_on_border'] / max(r['unscored'], 1):9.1%} {r['decided']:9d} "
+              f"{r['flagged_decided']:9d} {r['flagged_decided'] / max(r['decided'], 1):9.2%} "
+              f"{r['not_comparable']:9d}")
 
 
 if __name__ == "__main__":

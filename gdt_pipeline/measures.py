@@ -10,7 +10,8 @@ ones use:
 - ``distance_stage``: the distance stage around a pair function, for every measure (built-in and plugins alike): it
   runs tile by tile, takes the stage's ε_T (``tolerance``), lets a measure add to the groups first (``prepare``,
   e.g. local normals) and report what it counted (``summary``); ``run_pair_measure`` is its run and
-  ``attach_null_simulators`` its ``finish`` (the simulators again over the whole epoch, after a tiled run);
+  ``attach_null_simulators`` its ``finish`` (the simulators and the reference's coverage of the elements without a
+  score again over the whole epoch, after a tiled run);
 - ``euclidean``: the plain (cloud-to-cloud) distance as a pair function;
 - ``reference_cloud``: the composite so far as one point cloud, for measures that compare clouds rather than pairs.
 
@@ -32,7 +33,7 @@ import numpy as np
 from pydantic import BaseModel
 
 from .compiled import njit
-from .coverage import reference_coverage
+from .coverage import ReferenceCoverage
 from .geometry import sample_surface
 from .plugins import FAMILY_SLOTS, StageContext, StageSpec, family_stage
 from .types import Composite, Correspondences, Dataset, Scores, Uncertainty
@@ -225,7 +226,8 @@ def _add_counts(total: Counts, counts: Mapping[str, Mapping[str, int]]) -> None:
 
 
 def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: PairMeasure,
-                  prepare: Prepare | None = None, counts: Counts | None = None) -> tuple[Scores, float]:
+                  prepare: Prepare | None = None, counts: Counts | None = None,
+                  cover: ReferenceCoverage | None = None) -> tuple[Scores, float]:
     """The ``Scores`` of one recent dataset (lowest candidate per element, null simulator attached) and the largest
     integration error of its pairs; ``Scores.tolerance`` is left for the caller. What the measure counted is added to
     ``counts``."""
@@ -257,12 +259,15 @@ def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: 
         p_value = np.where(match >= 0, cand_p[np.maximum(match, 0)], np.nan)
     return Scores(query=corr.query, score=score, measure=name, p_value=p_value, tolerance=None,
                   simulate=null_simulator(sources, measure), match=match,
-                  covered=unmatched_coverage(ctx, ds, score)), worst
+                  covered=None if ctx.tile is not None else unmatched_coverage(ctx, ds, score, cover)), worst
 
 
-def unmatched_coverage(ctx: StageContext, ds: Dataset, score: np.ndarray) -> np.ndarray:
+def unmatched_coverage(ctx: StageContext, ds: Dataset, score: np.ndarray, cover: ReferenceCoverage | None = None
+                       ) -> np.ndarray:
     """Per element, whether the reference covers its place; judged for the elements without a score (the others
-    were compared, so the reference had data there), their neighbourhoods declared for tiles."""
+    were compared, so the reference had data there); ``cover``: the test against this reference, built once for
+    all of a stage's datasets. It runs over the whole epoch (a tiled run's ``finish``): the closest reference
+    surface may lie far outside a tile's halo."""
     covered = np.ones(len(score), dtype=bool)
     unmatched = np.flatnonzero(np.isnan(score))
     if unmatched.size == 0:
@@ -270,8 +275,7 @@ def unmatched_coverage(ctx: StageContext, ds: Dataset, score: np.ndarray) -> np.
     positions = ds.element_positions()[unmatched]
     scale = np.zeros(len(unmatched)) if ds.uncertainty is None else np.broadcast_to(
         ds.uncertainty.region99(ds.n_elements).bounding_radius(), (ds.n_elements,))[unmatched]
-    found = reference_coverage(ctx["reference"], positions, scale)
-    ctx.neighbourhoods(positions, found.looked)
+    found = (ReferenceCoverage(ctx["reference"]) if cover is None else cover)(positions, scale)
     covered[unmatched] = found.covered
     return covered
 
@@ -287,9 +291,10 @@ def run_pair_measure(ctx: StageContext, name: str, measure: PairMeasure, toleran
     out = []
     worst = 0.0
     counts: Counts = {}
+    cover = ReferenceCoverage(ctx["reference"])
     with ctx.progress.task(f"{name} scores", total=len(ctx["correspondences"])) as advance:
         for corr in ctx["correspondences"]:
-            scores, err = score_dataset(ctx, corr, name, measure, prepare, counts)
+            scores, err = score_dataset(ctx, corr, name, measure, prepare, counts, cover)
             worst = max(worst, err)
             out.append(dataclasses.replace(scores, tolerance=None if tolerance is None else max(tolerance, worst)))
             advance()
@@ -307,11 +312,14 @@ def attach_null_simulators(ctx: StageContext, measure: PairMeasure, prepare: Pre
     pairs: a distance stage's ``finish`` after a tiled run (simulators are closures and stay in their tile)."""
     by_query = {c.query: c for c in ctx["correspondences"]}
     out = []
+    cover = ReferenceCoverage(ctx["reference"])
     for s in ctx["scores"]:
-        sources: list[Any] = pair_sources(ctx["recent"][s.query], by_query[s.query], ctx["reference"])
+        ds = ctx["recent"][s.query]
+        sources: list[Any] = pair_sources(ds, by_query[s.query], ctx["reference"])
         if prepare is not None:
             sources = prepare([src.whole() for src in sources], s.query)
-        out.append(dataclasses.replace(s, simulate=null_simulator(sources, measure)))
+        out.append(dataclasses.replace(s, simulate=null_simulator(sources, measure),
+                                       covered=unmatched_coverage(ctx, ds, s.score, cover)))
     return {"scores": out}
 
 

@@ -124,13 +124,34 @@ def gaussian_loglik(d: np.ndarray, var: np.ndarray, location: float = 0.0, outli
     return float(np.sum(_mixed_loglik(log_n, outlier, half_width)))
 
 
+def fit_gaussian_outliers(d: np.ndarray, v: np.ndarray, half_width: np.ndarray, rounds: int = 200
+                          ) -> tuple[float, float, float]:
+    """ML (location, variance scale on ``v``, outlier share) of a Gaussian with a uniform outlier class of
+    half-width ``half_width`` (EM): stray points then do not make a Gaussian look heavy-tailed."""
+    loc, s2, outlier = float(np.median(d)), float((1.4826 * np.median(np.abs(d - np.median(d)))) ** 2), 0.05
+    s2 = max(s2, 1e-300)
+    for _ in range(rounds):
+        log_n = -0.5 * ((d - loc) ** 2 / (s2 * v) + np.log(2 * np.pi * s2 * v))
+        resp = np.exp(np.log1p(-outlier) + log_n - _mixed_loglik(log_n, outlier, half_width))
+        w = resp.sum()
+        new = (float(np.sum(resp * d / v) / np.sum(resp / v)), float(np.sum(resp * (d - loc) ** 2 / v) / w),
+               float(np.clip(1.0 - resp.mean(), 1e-6, 0.9)))
+        converged = abs(new[1] - s2) <= 1e-6 * s2 and abs(new[2] - outlier) <= 1e-6
+        loc, s2, outlier = new[0], max(new[1], 1e-300), new[2]
+        if converged:
+            break
+    return loc, s2, outlier
+
+
 def choose_tail(d: np.ndarray, *, v: np.ndarray | None = None, half_width: np.ndarray | None = None,
                 gaussian: tuple[float, float, float] | None = None, fit_location: bool = True) -> TailFit:
     """The t fitted to ``d`` against the Gaussian: the ML Gaussian (mean, variance) by default, or ``gaussian``
     = (location, variance scale on ``v``, outlier share) fitted elsewhere; the t when BIC says so."""
     d = np.asarray(d, dtype=np.float64)
     v1 = np.ones_like(d) if v is None else np.asarray(v, dtype=np.float64)
-    if gaussian is None:
+    if gaussian is None and half_width is not None:  # the fair rival of a t with an outlier class
+        gaussian = fit_gaussian_outliers(d, v1, half_width)
+    elif gaussian is None:
         loc = float(np.mean(d)) if fit_location else 0.0
         gaussian = (loc, float(np.mean((d - loc) ** 2 / v1)), 0.0)
     loc_g, s2_g, out_g = gaussian

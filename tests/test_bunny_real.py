@@ -1,7 +1,8 @@
 """Real data (issue 34): the Stanford bunny's Cyberware scans against the zipper mesh. Nothing changed, so every
 flagged point is a false alarm. The scanner is calibrated on bun000 and bun045 (a Student t is chosen: ν ≈ 2.9),
-the other eight scans are scored at calibrated_threshold 1 %: among the points that got a score at most 1.5 % may
-be flagged, per scan and overall. Every 3rd point of each scan keeps the test quick (about 30 s)."""
+the other eight scans are scored at calibrated_threshold 1 %: among the decided points (scored, or new for want of a
+correspondence) at most 1.5 % may be flagged, per scan and overall. Every 3rd point of each scan keeps the test
+quick (about 30 s)."""
 
 from __future__ import annotations
 
@@ -52,13 +53,16 @@ def test_eight_scans_flag_at_most_1_5_percent_of_their_scored_points(tmp_path: P
     assert run.returncode == 0, run.stderr
 
     stage = Usd.Stage.Open(str(tmp_path / "twin" / "twin.usda"))
-    flagged, scored = {}, {}
+    flagged, decided = {}, {}
     for scan in OTHERS:
         prim = stage.GetPrimAtPath(f"/Twin/E1_{scan}")
         score = np.asarray(prim.GetAttribute("primvars:gdt:changeScore").Get(), dtype=np.float64)
         state = np.asarray(prim.GetAttribute("primvars:gdt:changeState").Get())
-        scored[scan] = int(np.isfinite(score).sum())
-        flagged[scan] = int(np.sum(np.isfinite(score) & (state == 1)))  # 1: new
-        assert scored[scan] > 0.9 * len(score)
-        assert flagged[scan] <= 0.015 * scored[scan], (scan, flagged[scan], scored[scan])
-    assert sum(flagged.values()) <= 0.015 * sum(scored.values())
+        # every decided element counts: flagged by its score, or new for want of a correspondence; the elements
+        # where the mesh has no surface (not comparable, code 4) are apart
+        decided[scan] = int(np.sum(state != 4))
+        flagged[scan] = int(np.sum(state == 1))  # 1: new
+        assert np.isfinite(score).sum() > 0.99 * len(score)  # the t's reach scores the tail
+        assert decided[scan] > 0.99 * len(score)
+        assert 0 < flagged[scan] <= 0.015 * decided[scan], (scan, flagged[scan], decided[scan])
+    assert sum(flagged.values()) <= 0.015 * sum(decided.values())

@@ -394,7 +394,7 @@ def _measure(path: Path) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def test_readers_are_version_1_2(registry) -> None:
-    # 1.1: bad files refused; 1.2: LAS/LAZ carry intensity and colour (the audit warns for twins made before)
+def test_readers_are_version_1_3(registry) -> None:
+    # 1.1: bad files refused; 1.2: LAS/LAZ intensity and colour (audits warn for older twins); 1.3: classification
     for name in ("trimesh_mesh", "open3d_points", "laspy_points"):
-        assert registry.reader(name).version == "1.2.0"
+        assert registry.reader(name).version == "1.3.0"

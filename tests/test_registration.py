@@ -23,7 +23,7 @@ T_TRUE[:3, :3] = Rotation.from_euler("xyz", [1.5, -2.0, 3.0], degrees=True).as_m
 T_TRUE[:3, 3] = [0.05, -0.03, 0.02]
 
 
-def _cad_composite() -> tuple[Composite, list[trimesh.Trimesh]]:
+def cad_composite() -> tuple[Composite, list[trimesh.Trimesh]]:
     cad = [m for m, in_cad in scene_objects().values() if in_cad]
     items = tuple(CompositeItem(f"E0_{i}", Dataset(f"c{i}", "as-designed", m.vertices, faces=m.faces), "E0",
                                 np.zeros(len(m.faces)), np.full(len(m.faces), np.nan), np.zeros(len(m.faces)),
@@ -31,7 +31,7 @@ def _cad_composite() -> tuple[Composite, list[trimesh.Trimesh]]:
     return Composite(items), cad
 
 
-def _scan(meshes: list, noise: float, seed: int = 0) -> np.ndarray:
+def scan_of(meshes: list, noise: float, seed: int = 0) -> np.ndarray:
     az = np.radians([-60.0, 30.0, 150.0])
     vps = np.column_stack([2.0 * np.cos(az), 2.0 * np.sin(az), np.full(3, 1.2)])
     return simulate_stations(meshes, vps, np.array([0, 0, 0.15]), rng=np.random.default_rng(seed),
@@ -47,7 +47,7 @@ def _register(registry, name: str, params: dict, points: np.ndarray, comp: Compo
     return spec.run(ctx), ctx
 
 
-def _errors(t_est: np.ndarray, t_true: np.ndarray, pts: np.ndarray) -> tuple[float, float]:
+def transform_errors(t_est: np.ndarray, t_true: np.ndarray, pts: np.ndarray) -> tuple[float, float]:
     """Rotation error (degrees) and the largest point displacement error over ``pts``."""
     e = t_est @ t_true
     angle = np.degrees(np.arccos(np.clip((np.trace(e[:3, :3]) - 1) / 2, -1, 1)))
@@ -56,13 +56,13 @@ def _errors(t_est: np.ndarray, t_true: np.ndarray, pts: np.ndarray) -> tuple[flo
 
 @pytest.mark.parametrize("name", ["gicp", "point_to_plane"])
 def test_known_transform_is_recovered(registry, name: str) -> None:
-    comp, cad = _cad_composite()
-    scan = _scan(cad, noise=0.004)  # the noisy ToF-class scan of the demo
+    comp, cad = cad_composite()
+    scan = scan_of(cad, noise=0.004)  # the noisy ToF-class scan of the demo
     truth = scan["points"]
     moved = truth @ T_TRUE[:3, :3].T + T_TRUE[:3, 3]
     out, ctx = _register(registry, name, {}, moved, comp)
     reg = out["registration"]
-    angle, shift = _errors(reg.transform, T_TRUE, truth)
+    angle, shift = transform_errors(reg.transform, T_TRUE, truth)
     assert angle < 0.05 and shift < 0.001, (angle, shift)
     np.testing.assert_allclose(out["recent"][0].points, truth, atol=0.001)
     cov = reg.covariance
@@ -73,8 +73,8 @@ def test_known_transform_is_recovered(registry, name: str) -> None:
 
 
 def test_stable_areas_beat_plain_icp_with_a_new_object(registry) -> None:
-    comp, cad = _cad_composite()
-    scan = _scan(cad, noise=0.002)["points"]
+    comp, cad = cad_composite()
+    scan = scan_of(cad, noise=0.002)["points"]
     # a new panel 2 cm in front of the small cuboid's +x face: within the finest correspondence distance of the
     # schedule scaled to the scan (2 x 4.9 mm spacing x 2.5 = 2.5 cm), so it biases a plain ICP
     rng = np.random.default_rng(5)
@@ -87,29 +87,29 @@ def test_stable_areas_beat_plain_icp_with_a_new_object(registry) -> None:
     moved = pts @ T_TRUE[:3, :3].T + T_TRUE[:3, 3]
     plain, _ = _register(registry, "gicp", {}, moved, comp)
     stable, ctx = _register(registry, "stable_areas", {}, moved, comp)
-    _, err_plain = _errors(plain["registration"].transform, T_TRUE, scan)
-    _, err_stable = _errors(stable["registration"].transform, T_TRUE, scan)
+    _, err_plain = transform_errors(plain["registration"].transform, T_TRUE, scan)
+    _, err_stable = transform_errors(stable["registration"].transform, T_TRUE, scan)
     assert err_stable < err_plain / 5 and err_plain > 0.001, (err_stable, err_plain)
     assert err_stable < 0.001
     assert ctx.notes["stable_points"] < ctx.notes["all_points"] - 0.8 * n_new  # the panel was trimmed away
 
 
 def test_coarse_alignment_from_far_off(registry) -> None:
-    comp, cad = _cad_composite()
-    truth = _scan(cad, noise=0.001)["points"]
+    comp, cad = cad_composite()
+    truth = scan_of(cad, noise=0.001)["points"]
     far = np.eye(4)
     far[:3, :3] = Rotation.from_euler("z", 120, degrees=True).as_matrix()
     far[:3, 3] = [0.5, -0.3, 0.05]
     moved = truth @ far[:3, :3].T + far[:3, 3]
     plain, _ = _register(registry, "gicp", {}, moved, comp)
     out, ctx = _register(registry, "coarse", {}, moved, comp)  # features at the schedule's coarsest voxel
-    angle, shift = _errors(out["registration"].transform, far, truth)
+    angle, shift = transform_errors(out["registration"].transform, far, truth)
     assert angle < 0.05 and shift < 0.001, (angle, shift, ctx.notes)
-    assert _errors(plain["registration"].transform, far, truth)[1] > 0.05  # ICP alone does not get there
+    assert transform_errors(plain["registration"].transform, far, truth)[1] > 0.05  # ICP alone does not get there
 
 
 def test_given_and_identity(registry, tmp_path: Path) -> None:
-    comp, _ = _cad_composite()
+    comp, _ = cad_composite()
     pts = np.random.default_rng(0).normal(size=(10, 3))
     np.savetxt(tmp_path / "t.txt", T_TRUE)
     (tmp_path / "t.json").write_text(json.dumps(T_TRUE.tolist()))
@@ -142,7 +142,7 @@ def test_registration_in_a_workflow_with_propagation(cube_scene, registry) -> No
     prov = TwinStore.open(twin).provenance("E1")
     reg = prov["registration"]
     assert reg["method"] == "stable_areas+gicp" and len(reg["covariance"]) == 6
-    angle, shift = _errors(np.asarray(reg["transform"]), T_TRUE, scan)
+    angle, shift = transform_errors(np.asarray(reg["transform"]), T_TRUE, scan)
     assert angle < 0.05 and shift < 0.001
     rec = next(s for s in prov["stages"] if s["uses"] == "stable_areas")
     assert rec["report"]["fitness"] > 0.5

@@ -12,7 +12,7 @@ import pytest
 from gdt_pipeline import Composite, CompositeItem, Dataset, EpochInfo, StageContext, StageError
 from stages.registration._quality import Fit, check_covariance
 
-from .test_registration import T_TRUE, _cad_composite, _errors, _scan
+from .test_registration import T_TRUE, cad_composite, scan_of, transform_errors
 
 SHIFT = np.array([0.3, -0.2, 0.4])
 
@@ -33,15 +33,15 @@ def _run(registry, name: str, params: dict, recent: Dataset, comp: Composite):
 
 def test_schedule_scales_with_the_data(registry) -> None:
     """The same scan at 1x and 100x: the derived voxels scale by 100 and the transform is recovered at both."""
-    _, cad = _cad_composite()
-    ref, new = _scan(cad, 0.002, seed=1)["points"], _scan(cad, 0.002, seed=2)["points"]
+    _, cad = cad_composite()
+    ref, new = scan_of(cad, 0.002, seed=1)["points"], scan_of(cad, 0.002, seed=2)["points"]
     notes = []
     for scale in (1.0, 100.0):
         t = T_TRUE.copy()
         t[:3, 3] *= scale
         moved = (new * scale) @ t[:3, :3].T + t[:3, 3]
         out, ctx = _run(registry, "gicp", {}, Dataset("scan", "as-is", moved), _points_composite(ref * scale))
-        angle, shift = _errors(out["registration"].transform, t, new * scale)
+        angle, shift = transform_errors(out["registration"].transform, t, new * scale)
         assert angle < 0.05 and shift < 0.002 * scale, (scale, angle, shift)
         notes.append(ctx.notes["schedule"])
     assert notes[0]["derived"] and 0.004 < notes[0]["point_spacing"] < 0.007
@@ -106,8 +106,8 @@ def test_flat_plane_leaves_the_shift_unconstrained(registry) -> None:
 
 
 def test_low_fitness_warns_and_strict_refuses(registry, caplog) -> None:
-    comp, cad = _cad_composite()
-    scan = _scan(cad, 0.002)["points"]
+    comp, cad = cad_composite()
+    scan = scan_of(cad, 0.002)["points"]
     far = np.random.default_rng(2).uniform(-1, 1, (3 * len(scan), 3)) + np.array([0, 0, 20])  # 75 %: elsewhere
     recent = Dataset("scan", "as-is", np.vstack([scan, far]))
     with caplog.at_level(logging.WARNING, logger="gdt.stage.test"):

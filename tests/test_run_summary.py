@@ -20,10 +20,10 @@ def test_run_ends_with_what_changed_and_where_the_time_went(tmp_path: Path) -> N
     counts = store.provenance("E1")["counts"]
     row = next(line for line in res.stdout.splitlines() if line.startswith("│ E1 "))
     cells = [c.strip() for c in row.strip("│").split("│")]
-    assert cells[:5] == ["E1", f"{counts['new']:,}", f"{counts['removed']:,}", f"{counts['unchanged']:,}",
-                         f"{counts['outside_rov']:,}"]
+    assert cells[:6] == ["E1", f"{counts['new']:,}", f"{counts['removed']:,}", f"{counts['unchanged']:,}",
+                         f"{counts['outside_rov']:,}", f"{counts['not_comparable']:,}"]
     segments = store.read_segments("E1")
-    assert cells[5].startswith(f"{sum(s.kind == 'new' for s in segments)} new") and counts["new"] > 900
+    assert cells[6].startswith(f"{sum(s.kind == 'new' for s in segments)} new") and counts["new"] > 900
     stages = {st["uses"] for e in store.epochs() for st in store.provenance(e)["stages"]}
     listed = set(re.findall(r"^│ (\w+) +│ \w+ +│ +\d+ │", res.stdout, flags=re.MULTILINE))
     assert listed == stages and "time per stage" in res.stdout

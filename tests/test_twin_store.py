@@ -124,7 +124,7 @@ def test_stage_at_epoch_k_is_what_was_written_at_k(twin) -> None:
     assert store.provenance("E2")["stages"][0]["params"] == {"tau": 1.5}
     data = Sdf.Layer.FindOrOpen(str(path / "epochs" / "E1.usdc")).customLayerData["gdt"]
     assert json.loads(data["provenance_json"])["epoch"] == "E1"
-    assert list(data["state_names"]) == ["unchanged", "new", "removed", "outside_rov"]
+    assert list(data["state_names"]) == ["unchanged", "new", "removed", "outside_rov", "not_comparable"]
 
 
 def test_errors_name_what_is_wrong(twin) -> None:

@@ -172,5 +172,5 @@ def test_large_coordinates_keep_precision() -> None:
 
 
 def test_change_state_codes_are_stable() -> None:
-    assert [s.value for s in ChangeState] == [0, 1, 2, 3]
-    assert [s.name.lower() for s in ChangeState] == ["unchanged", "new", "removed", "outside_rov"]
+    assert [s.value for s in ChangeState] == [0, 1, 2, 3, 4]
+    assert [s.name.lower() for s in ChangeState] == ["unchanged", "new", "removed", "outside_rov", "not_comparable"]

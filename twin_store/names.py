@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-STATE_NAMES: tuple[str, ...] = ("unchanged", "new", "removed", "outside_rov")
-STATE_COLORS = np.array([[0.7, 0.7, 0.7], [0.1, 0.75, 0.2], [0.85, 0.1, 0.1], [0.3, 0.45, 0.9]], dtype=np.float32)
+# not_comparable: a recent element where the reference has no data (nothing to compare it with), or a known element
+# that nothing recent tested (no region of view, no confirming match): neither unchanged nor changed
+STATE_NAMES: tuple[str, ...] = ("unchanged", "new", "removed", "outside_rov", "not_comparable")
+STATE_COLORS = np.array([[0.7, 0.7, 0.7], [0.1, 0.75, 0.2], [0.85, 0.1, 0.1], [0.3, 0.45, 0.9], [0.95, 0.65, 0.1]],
+                        dtype=np.float32)
 ROOT_NAME = "twin.usda"
 EPOCH_DIR = "epochs"
 ROV_PRIM = "/RegionsOfView"
@@ -25,6 +28,7 @@ REASON_NAMES: tuple[str, ...] = (
     "known_more_precise",  # 7: unchanged recent element hidden: the known data it images is as precise or better
     "design_stays",        # 8: unchanged recent element hidden: it images design (CAD) geometry, which stays
     "known_stays",         # 9: unchanged recent element hidden: the policy keeps known data (or it images none)
+    "extends",             # 10: recent element where the twin had no data (not comparable): came in
 )
 
 DOC_UNCERTAINTY = "Scalar uncertainty per element for display: RMS standard deviation (twin units)."

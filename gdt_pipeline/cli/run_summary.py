@@ -13,7 +13,8 @@ from rich.table import Table
 
 from ..types import Segment
 
-STATE_COLUMNS = (("new", "new"), ("removed", "removed"), ("unchanged", "unchanged"), ("outside_rov", "outside view"))
+STATE_COLUMNS = (("new", "new"), ("removed", "removed"), ("unchanged", "unchanged"), ("outside_rov", "outside view"),
+                 ("not_comparable", "not comparable"))
 
 
 def _segment_text(segments: list[Segment]) -> str:

@@ -58,7 +58,8 @@ def rich_reporter(progress: Progress | None) -> Any:
         def epoch_finished(self, summary: Any) -> None:
             c = summary.counts
             err_console.print(f"  -> {summary.layer.name}: {c['unchanged']} unchanged, {c['new']} new, "
-                              f"{c['removed']} removed, {c['outside_rov']} outside view ({summary.seconds:.1f} s)")
+                              f"{c['removed']} removed, {c['outside_rov']} outside view, "
+                              f"{c['not_comparable']} not comparable ({summary.seconds:.1f} s)")
 
     return RichReporter()
 

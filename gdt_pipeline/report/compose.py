@@ -45,7 +45,8 @@ def view_section(scene: SceneData, figure: dict[str, Any], epochs: list[str], bu
             f'<p class="note" id="subsample">{subsample_note(scene, budget, units)}</p>'
             f"{toggles_html(layers, epochs)}"
             f'<p class="legend-help">Colours are the change state of this epoch: unchanged and new solid, removed '
-            f"(hidden by this epoch) ghosted, outside the region of view dimmed; elements hidden by earlier epochs "
+            f"(hidden by this epoch) ghosted, outside the region of view dimmed, not comparable (nothing in the other "
+            f"epoch to compare with, or not tested) amber; elements hidden by earlier epochs "
             f"are not drawn. The check boxes show or hide every layer of a change state, or every layer an epoch "
             f"supplied (a layer is drawn when both its boxes are ticked). Each legend entry is one layer (a state "
             f"and the epoch that supplied its elements): click it to hide or show that layer, double-click to show "

@@ -17,7 +17,8 @@ from .scene import Layer, SceneData
 TYPED = {np.dtype(np.float32): "f4", np.dtype(np.float64): "f8", np.dtype(np.int32): "i4", np.dtype(np.uint32): "u4"}
 # how each change state is drawn: opacity, share of white mixed into its colour, the word the page uses for it.
 # White as well as transparency: thousands of overlapping translucent markers add up to the full colour again.
-STYLE = {0: (1.0, 0.0, "solid"), 1: (1.0, 0.0, "solid"), 2: (0.25, 0.55, "ghosted"), 3: (0.6, 0.5, "dimmed")}
+STYLE = {0: (1.0, 0.0, "solid"), 1: (1.0, 0.0, "solid"), 2: (0.25, 0.55, "ghosted"), 3: (0.6, 0.5, "dimmed"),
+         4: (0.8, 0.3, "dimmed")}
 SOLID = (1.0, 0.0, "solid")
 MARKER_PX = 2
 BOX_COLOUR = "#ff8c00"

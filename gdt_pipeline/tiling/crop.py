@@ -112,7 +112,8 @@ def take_scores(s: Scores, elements: np.ndarray, match_of: IndexMap | None = Non
         match = np.full(len(match), -1, dtype=np.int64)
         match[won] = match_of(s.match[elements][won])
     return Scores(query=s.query, score=s.score[elements], measure=s.measure,
-                  p_value=None if s.p_value is None else s.p_value[elements], tolerance=s.tolerance, match=match)
+                  p_value=None if s.p_value is None else s.p_value[elements], tolerance=s.tolerance, match=match,
+                  covered=None if s.covered is None else s.covered[elements])
 
 
 def take_change(c: Change, elements: np.ndarray) -> Change:

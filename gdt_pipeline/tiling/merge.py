@@ -88,7 +88,15 @@ def merge_scores(pieces: Sequence[Scores], order: ElementOrder, candidate_maps: 
     tolerances = [p.tolerance for p in pieces if p.tolerance is not None]
     return Scores(query=first.query, score=np.concatenate([p.score for p in pieces])[order.position],
                   measure=first.measure, p_value=p_value, tolerance=max(tolerances) if tolerances else None,
-                  match=match)
+                  match=match, covered=_covered(pieces, order))
+
+
+def _covered(pieces: Sequence[Scores], order: ElementOrder) -> np.ndarray | None:
+    """The tiles' coverage in element order (a tile that computed none was covered everywhere)."""
+    if all(p.covered is None for p in pieces):
+        return None
+    parts = [np.ones(len(p.score), bool) if p.covered is None else p.covered for p in pieces]
+    return np.concatenate(parts)[order.position]
 
 
 def merge_change(pieces: Sequence[Change], order: ElementOrder) -> Change:

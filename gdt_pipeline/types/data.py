@@ -208,6 +208,9 @@ class Scores:
     p_value: np.ndarray | None = None
     tolerance: float | None = None  # ε_T of a numerical integration, when the measure used one
     match: np.ndarray | None = None  # per element, the index of the winning correspondence candidate (-1: none)
+    # per element, whether the reference has data at its place (its sampling, or a mesh surface over it); an element
+    # without a correspondence is new only where it does, else not comparable. None: covered everywhere
+    covered: np.ndarray | None = None
     # simulate(rng, n): scores of n unchanged pairs drawn from this dataset's actual pairs' uncertainty models (the
     # null distribution a calibrated threshold needs); None when the measure cannot simulate.
     simulate: Callable[[np.random.Generator, int], np.ndarray] | None = field(default=None, compare=False,
@@ -217,6 +220,8 @@ class Scores:
         object.__setattr__(self, "score", frozen_array(self.score, np.float64, (None,), "score"))
         if self.p_value is not None:
             object.__setattr__(self, "p_value", frozen_array(self.p_value, np.float64, (len(self.score),), "p-value"))
+        if self.covered is not None:
+            object.__setattr__(self, "covered", frozen_array(self.covered, np.bool_, (len(self.score),), "covered"))
 
 
 @dataclass(frozen=True)

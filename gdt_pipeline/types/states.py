@@ -19,6 +19,7 @@ class ChangeState(enum.IntEnum):
     NEW = 1
     REMOVED = 2
     OUTSIDE_ROV = 3
+    NOT_COMPARABLE = 4
 
 
 class FusionReason(enum.IntEnum):
@@ -35,6 +36,7 @@ class FusionReason(enum.IntEnum):
     KNOWN_MORE_PRECISE = 7
     DESIGN_STAYS = 8
     KNOWN_STAYS = 9
+    EXTENDS = 10
 
 
 # The twin store owns the names it writes into every layer; the engine's codes are spelt out for type checkers and

@@ -5,7 +5,6 @@ the twin stores of it. ``model`` names the distribution as the twin stores it (`
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -13,30 +12,8 @@ from typing import Literal
 import numpy as np
 
 from .arrays import broadcast_rows, covariance6, frozen_array
+from .densities import gauss_pdf, gauss_pdf_many, psd_factor, t_pdf_many
 from .region99 import BOX_99, CHI2_3_99, Region99, t3_radius2_99
-
-
-def _psd_factor(cov: np.ndarray) -> np.ndarray:
-    """A factor L with L Lᵀ = Σ for symmetric positive semi-definite Σ (eigen-based: works when Σ is singular)."""
-    w, v = np.linalg.eigh(cov)
-    return np.asarray(v * np.sqrt(np.clip(w, 0.0, None))[..., None, :])
-
-
-def _gauss_pdf_many(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """N(d; 0, C) for ``d (..., S, 3)`` and ``cov (..., 3, 3)``: one factorisation per covariance, S samples each."""
-    chol = np.linalg.cholesky(cov)
-    inv = np.linalg.inv(chol)
-    y = np.einsum("...ij,...sj->...si", inv, d)
-    logdet = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(axis=-1)
-    exponent = -0.5 * np.einsum("...si,...si->...s", y, y) - 0.5 * logdet[..., None] - 1.5 * np.log(2 * np.pi)
-    return np.asarray(np.exp(exponent))
-
-
-def _gauss_pdf(d: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    chol = np.linalg.cholesky(cov)
-    y = np.linalg.solve(chol, d[..., None])[..., 0]
-    logdet = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(axis=-1)
-    return np.asarray(np.exp(-0.5 * np.einsum("...i,...i->...", y, y) - 0.5 * logdet - 1.5 * np.log(2 * np.pi)))
 
 
 @dataclass(frozen=True)
@@ -136,7 +113,7 @@ class GaussianUncertainty:
 
     def sample(self, n: int, rng: np.random.Generator, k: int = 1) -> np.ndarray:
         """``k`` random offsets per element, ``(n,k,3)`` (Student t with ``dof``: one χ² per 3-D draw)."""
-        factor = np.broadcast_to(_psd_factor(self.cov), (n, 3, 3))
+        factor = np.broadcast_to(psd_factor(self.cov), (n, 3, 3))
         draws = np.einsum("nij,nkj->nki", factor, rng.standard_normal((n, k, 3)))
         if self.dof is not None:
             draws = draws * self._t_weights((n, k), rng)[..., None]
@@ -146,15 +123,15 @@ class GaussianUncertainty:
         """Density of each element's distribution at an ``(n,3)`` offset from its position."""
         d = np.asarray(offsets, dtype=np.float64)
         if self.dof is not None:
-            return _t_pdf_many(d[:, None, :], self.covariance(len(d)), self.dof)[:, 0]
-        return _gauss_pdf(d, self.covariance(len(d)))
+            return t_pdf_many(d[:, None, :], self.covariance(len(d)), self.dof)[:, 0]
+        return gauss_pdf(d, self.covariance(len(d)))
 
     def pdf_many(self, offsets: np.ndarray) -> np.ndarray:
         """Densities at ``(n,S,3)`` offsets, S per element (one factorisation per element)."""
         d = np.asarray(offsets, dtype=np.float64)
         if self.dof is not None:
-            return _t_pdf_many(d, self.covariance(len(offsets)), self.dof)
-        return _gauss_pdf_many(d, self.covariance(len(offsets)))
+            return t_pdf_many(d, self.covariance(len(offsets)), self.dof)
+        return gauss_pdf_many(d, self.covariance(len(offsets)))
 
     def region99(self, n: int) -> Region99:
         """The 99 % ellipsoid of each element (radii from the chi-square quantile with 3 degrees of freedom; for a t
@@ -162,16 +139,6 @@ class GaussianUncertainty:
         w, v = np.linalg.eigh(self.covariance(n))
         r2 = CHI2_3_99 if self.dof is None else t3_radius2_99(self.dof)
         return Region99("ellipsoid", np.zeros((n, 3)), np.sqrt(r2 * np.clip(w, 0.0, None)), v)
-
-
-def _t_pdf_many(d: np.ndarray, scale: np.ndarray, dof: float) -> np.ndarray:
-    """The 3-D Student t density t_ν(d; 0, Σ) for ``d (n,S,3)`` and scale matrices ``scale (n,3,3)``."""
-    chol = np.linalg.cholesky(scale)
-    y = np.einsum("nij,nsj->nsi", np.linalg.inv(chol), d)
-    logdet = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(axis=-1)
-    m2 = np.einsum("nsi,nsi->ns", y, y)
-    const = math.lgamma((dof + 3) / 2) - math.lgamma(dof / 2) - 1.5 * math.log(dof * math.pi)
-    return np.asarray(np.exp(const - 0.5 * logdet[:, None] - 0.5 * (dof + 3) * np.log1p(m2 / dof)))
 
 
 @dataclass(frozen=True)
@@ -287,132 +254,7 @@ class BoxUncertainty:
         return Region99("box", np.zeros((n, 3)), hw, np.array(self.axes(n)))
 
 
-@dataclass(frozen=True)
-class MixtureUncertainty:
-    """A Gaussian mixture per element: ``weights (N,K)``, component ``means (N,K,3)`` as offsets from the element's
-    position, and component ``covs (N,K,3,3)``. The paper merges the neighbours inside a query's 99 % region into
-    such a mixture (point-to-point correspondences)."""
-
-    weights: np.ndarray
-    means: np.ndarray
-    covs: np.ndarray
-    model: Literal["mixture"] = field(default="mixture", init=False)
-
-    def __post_init__(self) -> None:
-        w = frozen_array(self.weights, np.float64, (None, None), "mixture weights")
-        n, k = w.shape
-        object.__setattr__(self, "weights", w)
-        object.__setattr__(self, "means", frozen_array(self.means, np.float64, (n, k, 3), "mixture means"))
-        object.__setattr__(self, "covs", frozen_array(self.covs, np.float64, (n, k, 3, 3), "mixture covariances"))
-        if np.any(w < 0) or not np.allclose(w.sum(axis=1), 1.0, atol=1e-9):
-            raise ValueError("mixture weights must be >= 0 and sum to 1 per element")
-
-    @property
-    def rows(self) -> int:
-        """Rows the model holds (1: one mixture shared by every element)."""
-        return int(self.weights.shape[0])
-
-    def mean_offset(self, n: int) -> np.ndarray:
-        """Mean of each mixture relative to the element position, ``(n,3)``."""
-        broadcast_rows(self.weights, n, "mixture weights")
-        return np.broadcast_to(np.einsum("nk,nki->ni", self.weights, self.means), (n, 3))
-
-    def covariance(self, n: int) -> np.ndarray:
-        """Covariance of each mixture about its own mean: Σ w (C + μμᵀ) − m mᵀ."""
-        broadcast_rows(self.weights, n, "mixture weights")
-        m = np.einsum("nk,nki->ni", self.weights, self.means)
-        second = np.einsum("nk,nkij->nij", self.weights, self.covs + np.einsum("nki,nkj->nkij", self.means, self.means))
-        return np.broadcast_to(second - np.einsum("ni,nj->nij", m, m), (n, 3, 3))
-
-    def summary(self, n: int) -> np.ndarray:
-        """RMS standard deviation per element."""
-        return np.asarray(np.sqrt(np.trace(self.covariance(n), axis1=1, axis2=2) / 3.0))
-
-    def take(self, idx: np.ndarray) -> MixtureUncertainty:
-        """The uncertainty of the elements ``idx``."""
-        if self.weights.shape[0] == 1:
-            return self
-        return MixtureUncertainty(self.weights[idx], self.means[idx], self.covs[idx])
-
-    def repeated(self, n: int) -> MixtureUncertainty:
-        """The model with one row per element of ``n`` (a shared one repeated)."""
-        if self.rows == n:
-            return self
-        return MixtureUncertainty(np.repeat(self.weights, n, axis=0), np.repeat(self.means, n, axis=0),
-                                  np.repeat(self.covs, n, axis=0))
-
-    def padded(self, k: int) -> MixtureUncertainty:
-        """The same mixtures with ``k`` components, the extra ones weightless (the placeholders point_to_point
-        uses)."""
-        n, have = self.weights.shape
-        if have == k:
-            return self
-        weights = np.zeros((n, k))
-        weights[:, :have] = self.weights
-        means = np.zeros((n, k, 3))
-        means[:, :have] = self.means
-        covs = np.broadcast_to(np.eye(3), (n, k, 3, 3)).copy()
-        covs[:, :have] = self.covs
-        return MixtureUncertainty(weights, means, covs)
-
-    @staticmethod
-    def stacked(parts: Sequence[MixtureUncertainty]) -> MixtureUncertainty:
-        """The rows of ``parts`` one after the other, padded to the most components any has."""
-        k = max(p.weights.shape[1] for p in parts)
-        full = [p.padded(k) for p in parts]
-        return MixtureUncertainty(np.concatenate([p.weights for p in full]), np.concatenate([p.means for p in full]),
-                                  np.concatenate([p.covs for p in full]))
-
-    def rotated(self, rot: np.ndarray) -> MixtureUncertainty:
-        """The model turned by the rotation ``rot`` (3,3): component offsets R·μ and covariances R C Rᵀ."""
-        return MixtureUncertainty(self.weights, self.means @ rot.T, rot @ self.covs @ rot.T)
-
-    def moment_matched(self, n: int) -> GaussianUncertainty:
-        """The Gaussian of equal covariance (about the mixture's mean), per element."""
-        return GaussianUncertainty(self.covariance(n))
-
-    def stored(self, n: int) -> dict[str, np.ndarray]:
-        """What the twin stores of the model for ``n`` elements: its moments (covariance about its mean); the
-        components stay in the run."""
-        return {"covariance": covariance6(self.covariance(n))}
-
-    def components(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Weights ``(n,K)``, means ``(n,K,3)`` and covariances ``(n,K,3,3)`` broadcast to ``n`` elements."""
-        broadcast_rows(self.weights, n, "mixture weights")
-        k = self.weights.shape[1]
-        return (np.broadcast_to(self.weights, (n, k)), np.broadcast_to(self.means, (n, k, 3)),
-                np.broadcast_to(self.covs, (n, k, 3, 3)))
-
-    def sample(self, n: int, rng: np.random.Generator, k: int = 1) -> np.ndarray:
-        """``k`` random offsets per element, ``(n,k,3)``: a component by weight, then a Gaussian draw from it."""
-        w, mu, cov = self.components(n)
-        cum = np.cumsum(w, axis=1)
-        comp = (rng.random((n, k, 1)) > cum[:, None, :-1]).sum(axis=2)
-        rows = np.arange(n)[:, None]
-        factor = _psd_factor(cov[rows, comp])
-        return np.asarray(mu[rows, comp] + np.einsum("nkij,nkj->nki", factor, rng.standard_normal((n, k, 3))))
-
-    def pdf(self, offsets: np.ndarray) -> np.ndarray:
-        """Density at an ``(n,3)`` offset: Σ w_k N(d; μ_k, C_k)."""
-        d = np.asarray(offsets, dtype=np.float64)
-        w, mu, cov = self.components(len(d))
-        return np.asarray(np.einsum("nk,nk->n", w, _gauss_pdf(d[:, None, :] - mu, cov)))
-
-    def pdf_many(self, offsets: np.ndarray) -> np.ndarray:
-        """Densities at ``(n,S,3)`` offsets, S per element (one factorisation per component)."""
-        d = np.asarray(offsets, dtype=np.float64)
-        w, mu, cov = self.components(len(d))
-        rel = d[:, None, :, :] - mu[:, :, None, :]  # (n, K, S, 3)
-        return np.asarray(np.einsum("nk,nks->ns", w, _gauss_pdf_many(rel, cov)))
-
-    def region99(self, n: int) -> Region99:
-        """A sphere around the element holding at least 99 %: it encloses every component's 99 % ellipsoid."""
-        w, mu, cov = self.components(n)
-        lam = np.linalg.eigvalsh(cov)[..., -1]
-        radius = np.where(w > 0, np.linalg.norm(mu, axis=-1) + np.sqrt(CHI2_3_99 * np.clip(lam, 0, None)), 0).max(1)
-        return Region99("sphere", np.zeros((n, 3)), np.repeat(radius[:, None], 3, axis=1),
-                        np.broadcast_to(np.eye(3), (n, 3, 3)).copy())
-
+from .mixture import MixtureUncertainty as MixtureUncertainty  # noqa: E402  (it builds on the Gaussian above)
 
 Uncertainty = GaussianUncertainty | BoxUncertainty | MixtureUncertainty
 

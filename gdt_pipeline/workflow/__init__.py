@@ -27,6 +27,7 @@ from .model import (
     json_schema,
     workflow_model,
 )
+from .stations import station_problems
 
 
 def load_workflow(path: str | Path, registry: Registry, *, check_files: bool = True) -> LoadedWorkflow:
@@ -50,6 +51,7 @@ def load_workflow(path: str | Path, registry: Registry, *, check_files: bool = T
         reference_problems(data, registry, problems, path.parent)
         if model is not None:
             param_problems(model, registry, problems, path.parent)
+            station_problems(model, registry, problems, path.parent)
     if problems.items:
         raise WorkflowError(str(path), problems.sorted())
     return LoadedWorkflow(path=path, sha256=hashlib.sha256(text.encode()).hexdigest(), model=model, text=text)

@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
 
 from gdt_pipeline import GaussianUncertainty, StageContext, StageSpec, family_stage
 from gdt_pipeline.geometry.extent import check_scales
+from gdt_pipeline.types.region99 import reach_factor
 
 from .directed import (
     ReferenceMeshes,
@@ -69,6 +70,10 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
     ref_pts = ReferencePoints(reference, p.surface_sampling) if use_points else None
     ref_mesh = ReferenceMeshes(reference) if use_meshes else None
     if (ref_pts is None or ref_pts.empty) and (ref_mesh is None or ref_mesh.empty):
+        if ctx.tile is not None:  # a tile past the twin's data (a strip an earlier survey never reached)
+            empty = [to_correspondences(qi, ds.n_elements, [], name) for qi, ds in enumerate(ctx["recent"])]
+            return {"correspondences": [c if ds.faces is not None else dataclasses.replace(c, query_position=None)
+                                        for c, ds in zip(empty, ctx["recent"], strict=True)]}
         wanted = " or ".join(k for k, u in (("points", use_points), ("meshes", use_meshes)) if u)
         raise ValueError(f"{name}: the twin holds no visible {wanted} to match against")
     q99 = _chi2_3(p.probability)
@@ -94,9 +99,12 @@ def _directed(ctx: StageContext, name: str, query_kind: str | None, use_points: 
             qcov = np.asarray(ds.uncertainty.covariance(ds.n_elements))[element]
         parts = []
         if ref_pts is not None and not ref_pts.empty:
-            parts.append(point_to_point(qpos, qcov, ref_pts, q99, p.max_components, element))
+            parts.append(point_to_point(qpos, qcov, ref_pts, q99 * reach_factor(ds.uncertainty) ** 2,
+                                            p.max_components, element))
         if ref_mesh is not None and not ref_mesh.empty:
-            parts.append(point_to_mesh(qpos, qcov, ref_mesh, p.search_sigmas, extra_var, element))
+            # a heavy-tailed (Student t) scan reaches as much farther as its 99 % region does
+            parts.append(point_to_mesh(qpos, qcov, ref_mesh, p.search_sigmas * reach_factor(ds.uncertainty),
+                                       extra_var, element))
         corr = to_correspondences(qi, ds.n_elements, parts, name)
         if ds.name in expected:
             # a heavy-tailed (Student t) query keeps its ν: exact where a point kept its own value, conservative
@@ -137,7 +145,8 @@ def _directed_reach(params: DirectedParams, slots: Mapping[str, Any]) -> float:
     recent, reference = slots["recent"], slots["reference"]
     if any(ds.uncertainty is None for ds in recent):
         raise ValueError("the search reach needs the recent data's uncertainty: add an uncertainty stage before")
-    var_q = max((_largest_variance(ds.uncertainty) for ds in recent), default=0.0)
+    var_q = max((_largest_variance(ds.uncertainty) * reach_factor(ds.uncertainty) ** 2 for ds in recent),
+                default=0.0)
     facet = max((float(np.linalg.norm(ds.points[ds.faces] - ds.element_positions()[:, None], axis=2).max())
                  for ds in recent if ds.faces is not None and len(ds.faces)), default=0.0)
     meshes = [it for it in reference.items if it.dataset.faces is not None and it.visible.any()]
@@ -164,7 +173,7 @@ def _chi2_3(probability: float) -> float:
 
 
 def _stage(name: str, query_kind: str | None, points: bool, meshes: bool, description: str) -> StageSpec:
-    return family_stage("correspondence", name=name, version="1.0.0", params=DirectedParams,
+    return family_stage("correspondence", name=name, version="1.1.0", params=DirectedParams,
                         run=lambda ctx: _directed(ctx, name, query_kind, points, meshes), description=description,
                         tiling="tile", reach=_directed_reach, survey=_directed_survey)
 

@@ -12,7 +12,7 @@ from gdt_pipeline.measures import Counts, Measured, PairGroup, distance_stage
 
 from .bhattacharyya_maths import bd_gauss_gauss, bhattacharyya
 
-VERSION = "1.1.0"
+VERSION = "1.2.0"
 bhattacharyya_gaussian = bd_gauss_gauss  # the closed form, kept under its descriptive name
 
 

@@ -20,5 +20,5 @@ def euclidean_pairs(g: PairGroup, rng: np.random.Generator, params: EuclideanPar
     return euclidean(g, rng, params.scale)
 
 
-SPEC = distance_stage(name="euclidean", measure=euclidean_pairs, params=EuclideanParams, version="1.1.0",
+SPEC = distance_stage(name="euclidean", measure=euclidean_pairs, params=EuclideanParams, version="1.2.0",
                       description="Plain Euclidean distance to the corresponding position.")

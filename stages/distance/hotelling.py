@@ -29,5 +29,5 @@ def hotelling(g: PairGroup, rng: np.random.Generator, params: HotellingParams | 
     return t2, chi2.sf(t2, 3), np.zeros(0)
 
 
-SPEC = distance_stage(name="hotelling", measure=hotelling, params=HotellingParams, version="1.1.0",
+SPEC = distance_stage(name="hotelling", measure=hotelling, params=HotellingParams, version="1.2.0",
                       description="Hotelling's T² with known covariances, p-values from χ²(3) (Gaussians only).")

@@ -60,5 +60,5 @@ def welch(g: PairGroup, rng: np.random.Generator, params: WelchParams) -> Measur
     return np.abs(t), 2.0 * ndtr(-np.abs(t)), np.zeros(0)
 
 
-SPEC = distance_stage(name="welch_m3c2", measure=welch, params=WelchParams, version="1.2.0", prepare=with_normals,
+SPEC = distance_stage(name="welch_m3c2", measure=welch, params=WelchParams, version="1.3.0", prepare=with_normals,
                       description="M3C2-style test on equal means along the local normal (known variances).")

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from gdt_pipeline import (
     ChangeState,
@@ -21,6 +22,7 @@ from gdt_pipeline import (
     StageSpec,
     family_stage,
 )
+from gdt_pipeline.coverage import within_pair_region
 
 from ._fitting import fit_parts, part_problems
 from ._moved import moved
@@ -33,8 +35,8 @@ def fusion_stage(name: str, params: type[SegmentParams], run: Callable[[StageCon
     """A fusion stage: it reads the recent data and, when there are, the reference, the change and the region of
     view; its catalogue parts are checked before a run, and ``needs_rov`` says whether its rule replaces elements
     in view (then a region of view must come first)."""
-    return family_stage("fusion", name=name, version="1.2.0", params=params, run=run, description=description,
-                        optional=("reference", "change", "rov"), validate=part_problems,
+    return family_stage("fusion", name=name, version="1.3.0", params=params, run=run, description=description,
+                        optional=("reference", "change", "rov", "correspondences", "scores"), validate=part_problems,
                         check=chain_check(name, needs_rov))
 
 
@@ -58,13 +60,51 @@ def chain_check(name: str, needs_rov: bool) -> Callable[[frozenset[str]], str | 
 check_slots = chain_check("keep_unchanged", False)
 
 
+def confirmed(ctx: StageContext, reference: Composite) -> list[np.ndarray]:
+    """Per known item, the elements that a recent element decided unchanged was matched with (this epoch tested
+    them and found them as they were)."""
+    out = [np.zeros(it.dataset.n_elements, dtype=bool) for it in reference.items]
+    corrs = {c.query: c for c in ctx.get("correspondences") or []}
+    for s, ch in zip(ctx.get("scores") or [], ctx.get("change") or [], strict=False):
+        corr = corrs.get(s.query)
+        if corr is None or s.match is None or ch.query != s.query:
+            continue
+        won = s.match[(s.match >= 0) & (ch.state == ChangeState.UNCHANGED)]
+        for item in np.unique(corr.ref_item[won]):
+            out[item][corr.ref_element[won][corr.ref_item[won] == item]] = True
+    # a known point another recent point won can still lie within an unchanged recent point's noise: tested too
+    recent = [(ds, ch) for ds, ch in zip(ctx["recent"], ctx.get("change") or [], strict=False) if ds.uncertainty]
+    if recent:
+        cloud = np.concatenate([ds.element_positions()[ch.state == ChangeState.UNCHANGED] for ds, ch in recent])
+        cloud_cov = np.concatenate([ds.element_covariance()[ch.state == ChangeState.UNCHANGED] for ds, ch in recent])
+        tree = cKDTree(cloud) if len(cloud) else None
+        for i, it in enumerate(reference.items):
+            if tree is not None and it.dataset.faces is None and it.dataset.uncertainty is not None:
+                out[i] |= within_pair_region(it.dataset.points, it.dataset.element_covariance(), cloud, cloud_cov,
+                                             tree)
+    return out
+
+
+def _untested(items: list[CompositeItem], tested: list[np.ndarray]) -> list[CompositeItem]:
+    """Without a region of view: known elements no unchanged recent element confirmed are not comparable (nothing
+    says whether they are still there), the confirmed ones unchanged."""
+    out = []
+    for it, seen in zip(items, tested, strict=True):
+        judged = it.visible & np.isin(it.state, (ChangeState.UNCHANGED, ChangeState.NOT_COMPARABLE))
+        state = it.state.copy()
+        state[judged] = np.where(seen[judged], ChangeState.UNCHANGED, ChangeState.NOT_COMPARABLE)
+        out.append(dataclasses.replace(it, state=state))
+    return out
+
+
 def _carried(reference: Composite, rov: RegionOfView | None, whole_parts: bool = False
              ) -> tuple[list[CompositeItem], dict[int, np.ndarray]]:
     """The known items with this epoch's states and reasons, and per item the elements removed now."""
     items: list[CompositeItem] = []
     removed_now: dict[int, np.ndarray] = {}
     for it in reference.items:
-        state = np.where(it.state == ChangeState.NEW, ChangeState.UNCHANGED, it.state).astype(np.uint8)
+        reset = (ChangeState.NEW, ChangeState.NOT_COMPARABLE)
+        state = np.where(np.isin(it.state, reset), ChangeState.UNCHANGED, it.state).astype(np.uint8)
         visible = it.visible
         # hidden elements keep the reason they left with; what is still shown is "kept" until this epoch says more
         reason = np.where(it.visible, FusionReason.KEPT, it.reason).astype(np.uint8)
@@ -157,6 +197,7 @@ def _recent(ctx: StageContext, has_reference: bool, decision: Decision | None) -
             if decision is not None and qi in decision.taking:
                 visible = visible | decision.taking[qi]
             reason = np.where(state == ChangeState.NEW, FusionReason.NEW, reason).astype(np.uint8)
+            reason = np.where(state == ChangeState.NOT_COMPARABLE, FusionReason.EXTENDS, reason).astype(np.uint8)
         items.append(CompositeItem(key=f"{epoch.id}_{ds.name}", dataset=ds, epoch=epoch.id, state=state, score=score,
                                    source_epoch=np.full(n, epoch.index, dtype=np.int32), visible=visible,
                                    p_value=p_value, reason=reason, reason_ratio=ratio))
@@ -185,6 +226,8 @@ def fuse(ctx: StageContext, policy: str | None) -> dict[str, Any]:
     """The composite of this epoch under ``policy`` (None: keep_unchanged, no replacement)."""
     reference = ctx.get("reference") or Composite()
     items, removed_now = _carried(reference, ctx.get("rov"), ctx.params.whole_parts)
+    if reference.items and ctx.get("rov") is None and ctx.get("change") is not None:
+        items = _untested(items, confirmed(ctx, reference))
     decision = None
     if policy is not None and reference.items:
         decision = _replace(ctx, items, policy)

@@ -9,13 +9,15 @@ the paper's Plane of Sight under ``sight: plane``; see that module):
   parameters or the data. Each frustum is its own station's volume.
 - ``manual_box``: a user-given axis-aligned box, as the paper did for its experiments; the stations are the
   recent data's viewpoints.
+- ``coverage``: for data without stations (airborne, voxelised clouds): judged from the recent data's own coverage,
+  or along a stated sight direction (nadir), without a sight test from stations.
 """
 
 from __future__ import annotations
 
 from gdt_pipeline import StageSpec, hookimpl
 
-from . import manual_box, sensor_frustum
+from . import coverage, manual_box, sensor_frustum
 from .manual_box import BoxParams
 from .sensor_frustum import FrustumParams
 
@@ -25,4 +27,4 @@ __all__ = ["BoxParams", "FrustumParams", "gdt_stages"]
 @hookimpl
 def gdt_stages() -> list[StageSpec]:
     """The built-in region-of-view stages."""
-    return [sensor_frustum.SPEC, manual_box.SPEC]
+    return [sensor_frustum.SPEC, manual_box.SPEC, coverage.SPEC]

@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveInt
 
 from gdt_pipeline import Scores, StageContext, family_stage
 
-from .cut import above, change_of
+from .cut import above, change_of, decided
 
 
 class CalibratedParams(BaseModel):
@@ -49,6 +49,15 @@ def _models(scores: list[Scores]) -> list[str]:
     return sorted({m for s in scores for m in getattr(s.simulate, "models", ["unnamed"])})
 
 
+def _decided(members: list[Scores]) -> dict[str, int]:
+    """The decided elements of ``members``, summed (``cut.decided``)."""
+    total: dict[str, int] = {}
+    for s in members:
+        for key, n in decided(s).items():
+            total[key] = total.get(key, 0) + n
+    return total
+
+
 def _calibrated(ctx: StageContext) -> dict[str, Any]:
     p = ctx.params
     scores = list(ctx["scores"])
@@ -69,13 +78,19 @@ def _calibrated(ctx: StageContext) -> dict[str, Any]:
         models = _models(members)
         ctx.log.info("calibrated tau %.6g for false alarms %.4g (%s): achieved %.4g on an independent simulation "
                      "drawn from %s", tau, p.false_alarm, query, achieved, "; ".join(models))
+        counts = _decided(members)
+        judged = counts["scored"] + counts["new_without_correspondence"]
+        # every decided element counts: one without a correspondence is changed whatever τ is, so on unchanged data
+        # it is a false alarm as surely as a score above τ
+        overall = (achieved * counts["scored"] + counts["new_without_correspondence"]) / judged if judged else 0.0
         report.append({"query": query, "tau": tau, "false_alarm_target": p.false_alarm,
-                       "false_alarm_achieved": achieved, "samples": int(p.samples), "null_models": models})
+                       "false_alarm_achieved": overall, "false_alarm_simulated": achieved, "decided": counts,
+                       "samples": int(p.samples), "null_models": models})
         out += [change_of(s, above(s.score, tau), tau) for s in members]
     ctx.report(calibration=report)
     return {"change": out}
 
 
-SPEC = family_stage("threshold", name="calibrated_threshold", version="1.3.0", params=CalibratedParams,
+SPEC = family_stage("threshold", name="calibrated_threshold", version="1.4.0", params=CalibratedParams,
                     run=_calibrated,
                     description="τ for a false-alarm rate, from simulated unchanged pairs of the actual models.")

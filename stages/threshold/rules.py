@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
 
 from gdt_pipeline import StageContext, family_stage
 
-from .cut import above, change_of
+from .cut import above, change_of, relabel_not_comparable
 
 
 class FixedParams(BaseModel):
@@ -64,10 +64,11 @@ def _significance(ctx: StageContext) -> dict[str, Any]:
     return {"change": out}
 
 
-FIXED = family_stage("threshold", name="fixed", version="1.2.0", params=FixedParams, run=_fixed, tiling="tile",
-                     description="Changed where score > τ.")
-TOLERANCE_MULTIPLE = family_stage("threshold", name="tolerance_multiple", version="1.2.0",
+FIXED = family_stage("threshold", name="fixed", version="1.3.0", params=FixedParams, run=_fixed, tiling="tile",
+                     finish=relabel_not_comparable, description="Changed where score > τ.")
+TOLERANCE_MULTIPLE = family_stage("threshold", name="tolerance_multiple", version="1.3.0",
                                   params=ToleranceMultipleParams, run=_tolerance_multiple,
                                   description="τ = k·ε_T, the paper's initial value.")
-SIGNIFICANCE = family_stage("threshold", name="significance", version="1.2.0", params=SignificanceParams,
-                            run=_significance, tiling="tile", description="Changed where the test's p-value < α.")
+SIGNIFICANCE = family_stage("threshold", name="significance", version="1.3.0", params=SignificanceParams,
+                            run=_significance, tiling="tile", finish=relabel_not_comparable,
+                            description="Changed where the test's p-value < α.")

@@ -170,7 +170,8 @@ def test_not_comparable_is_the_same_whole_or_in_tiles(tmp_path: Path) -> None:
     write_points_ply(tmp_path / "new.ply", new + rng.normal(0, 0.002, new.shape))
     wf = tmp_path / "wf.yaml"
     wf.write_text(textwrap.dedent(WORKFLOW.format(rov="")).replace(
-        "  - uses: calibrated_threshold\n    epochs: [E1]\n", "  - uses: fixed\n    epochs: [E1]\n    with: {tau: 3.0}\n"))
+        "  - uses: calibrated_threshold\n    epochs: [E1]\n",
+        "  - uses: fixed\n    epochs: [E1]\n    with: {tau: 3.0}\n"))
     states = []
     for name, tiling in (("whole", None), ("tiled", TilingOptions(tile=0.4))):
         twin = run_workflow(wf, twin=tmp_path / name, tiling=tiling).twin

@@ -3,8 +3,8 @@ known element from the recent data alone.
 
 - **Matched** (present): a recent point lies within the 99 % region of the pair (Mahalanobis distance under the sum
   of both covariances, χ²₃ at 0.99); with a ``sight``, also one of the 8 recent points nearest across the sight
-  (within ``spacings`` spacings) at the element's depth along it (χ²₁ at 0.99), since sparse airborne data samples
-  the same surface metres apart.
+  within one recent spacing, at the element's depth along it (χ²₁ at 0.99), since sparse airborne data samples
+  the same surface a spacing apart.
 - **Removed** needs evidence that the place is empty now:
   - with a stated ``sight`` (the direction the beams travel, e.g. ``[0, 0, -1]`` for nadir airborne data): every
     recent return in the element's column (the cells of ``spacings`` recent spacings across around it, across the
@@ -124,7 +124,7 @@ def judge(item: CompositeItem, cloud: np.ndarray, cloud_cov: np.ndarray, params:
     reach = np.sqrt(CHI2_3_99 * np.linalg.eigvalsh(cov)[:, -1].clip(0.0))
     if params.sight is not None:
         sight = np.asarray(params.sight, dtype=np.float64) / np.linalg.norm(params.sight)
-        matched |= _matched_along(points, cov, cloud, cloud_cov, sight, params.spacings * spacing)
+        matched |= _matched_along(points, cov, cloud, cloud_cov, sight, spacing)
         empty = _seen_through(points, reach, cloud, sight, params.spacings * spacing)
     else:
         empty = sampled(cloud, points, reach, params.spacings).covered

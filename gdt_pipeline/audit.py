@@ -223,8 +223,14 @@ def audit_twin(twin: str | Path, *, epoch: str | None = None, strict: bool = Fal
     store.verify()  # a layer that is not the file that was written is an error before anything is re-run
     report = AuditReport(twin=str(Path(twin).resolve()), strict=strict)
     plan, report.warnings, problems = plan_from_twin(store, registry, upto, base_dir=base_dir)
-    report.warnings += store.run_lock_problems()
+    lock_problems = store.run_lock_problems()
+    report.warnings += lock_problems
     audited = epochs[: epochs.index(upto) + 1]
+    if strict and lock_problems:  # the run record is what a strict audit checks first: no re-run can pass it
+        report.epochs += [EpochAudit(e, "not re-run", input_problems=["strict: the run record gdt.lock has "
+                                                                       "problems (see the warnings)"])
+                          for e in audited]
+        return report
     broken = next((i for i, e in enumerate(audited) if e in problems), None)
     runnable = audited if broken is None else audited[:broken]
     rerun_store = None

@@ -273,8 +273,9 @@ def unmatched_coverage(ctx: StageContext, ds: Dataset, score: np.ndarray, cover:
     if unmatched.size == 0:
         return covered
     positions = ds.element_positions()[unmatched]
-    scale = np.zeros(len(unmatched)) if ds.uncertainty is None else np.broadcast_to(
-        ds.uncertainty.region99(ds.n_elements).bounding_radius(), (ds.n_elements,))[unmatched]
+    # the 99 % regions of the unmatched elements only: a scan's other million need no eigendecomposition
+    scale = np.zeros(len(unmatched)) if ds.uncertainty is None else \
+        ds.uncertainty.take(unmatched).region99(len(unmatched)).bounding_radius()
     found = (ReferenceCoverage(ctx["reference"]) if cover is None else cover)(positions, scale)
     covered[unmatched] = found.covered
     return covered

@@ -15,9 +15,9 @@ def change_of(s: Scores, mask: np.ndarray, threshold: float | None) -> Change:
     """The change of a dataset's scores under ``mask``: changed elements new, the rest unchanged, and the elements
     without a score where the reference has no data not comparable (they still come in: changed)."""
     state = np.where(mask, ChangeState.NEW, ChangeState.UNCHANGED).astype(np.uint8)
-    if s.covered is not None:
-        state[np.isnan(s.score) & ~s.covered] = ChangeState.NOT_COMPARABLE
-        mask = mask | (np.isnan(s.score) & ~s.covered)
+    apart = not_comparable(s)
+    state[apart] = ChangeState.NOT_COMPARABLE
+    mask = mask | apart
     return Change(query=s.query, score=s.score, mask=mask, state=state, p_value=s.p_value, threshold=threshold)
 
 
@@ -26,13 +26,17 @@ def above(score: np.ndarray, tau: float) -> np.ndarray:
     return ~(score <= tau)  # NaN (no correspondence) counts as changed
 
 
+def not_comparable(s: Scores) -> np.ndarray:
+    """The elements without a score where the reference has no data (none before the coverage is judged)."""
+    return np.isnan(s.score) & ~(np.ones(len(s.score), bool) if s.covered is None else s.covered)
+
+
 def decided(s: Scores) -> dict[str, int]:
     """What a threshold decides about a dataset's elements: scored, new for want of a correspondence where the
     reference covers their place, and not comparable (no reference data there)."""
-    unscored = np.isnan(s.score)
-    covered = np.ones(len(s.score), bool) if s.covered is None else s.covered
-    return {"scored": int((~unscored).sum()), "new_without_correspondence": int((unscored & covered).sum()),
-            "not_comparable": int((unscored & ~covered).sum())}
+    unscored, apart = np.isnan(s.score), not_comparable(s)
+    return {"scored": int((~unscored).sum()), "new_without_correspondence": int((unscored & ~apart).sum()),
+            "not_comparable": int(apart.sum())}
 
 
 def relabel_not_comparable(ctx: StageContext) -> dict[str, Any]:
@@ -46,7 +50,7 @@ def relabel_not_comparable(ctx: StageContext) -> dict[str, Any]:
             out.append(c)
             continue
         state = c.state.copy()
-        apart = np.isnan(s.score) & ~s.covered
+        apart = not_comparable(s)
         state[apart] = ChangeState.NOT_COMPARABLE
         out.append(dataclasses.replace(c, state=state, mask=c.mask | apart))
     return {"change": out}

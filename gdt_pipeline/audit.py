@@ -15,20 +15,24 @@ in tiles is re-run in the same tiles (their sizes are in the stages' reports), i
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import os
 import tempfile
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import ValidationError
 
 from twin_store import ElementSet, TwinStore
 
-from .errors import GdtError, PluginError
+from .errors import GdtError
 from .plugins import Registry, load_registry
-from .provenance import EpochProvenance, StageRecord
-from .runner import EpochPlan, InputPlan, RunPlan, StagePlan, TilingOptions, execute_plan, sha256_file
+from .provenance import EpochProvenance
+from .runner import EpochPlan, RunPlan, TilingOptions, execute_plan
+from .runner.recorded import inputs_dir, recorded_inputs, recorded_stage
 
 EXACT_FIELDS = ("faces", "ids", "state", "visible", "source_epoch")
 FLOAT_FIELDS = ("points", "covariance", "half_widths", "rotation", "uncertainty_summary", "score", "p_value")
@@ -135,62 +139,24 @@ def compare_element_sets(stored: list[ElementSet], rerun: list[ElementSet], *, r
     return diffs, exact and not diffs
 
 
-def _input_plans(prov: EpochProvenance, base: Path, problems: list[str]) -> list[InputPlan]:
-    """The inputs an epoch read, located under ``base``; a missing or changed file is added to ``problems``."""
-    inputs = []
-    for rec in prov.inputs:
-        path = base / rec.path
-        if not path.is_file():
-            problems.append(f"input {rec.path} is missing (looked at {path}; recorded sha256 {rec.sha256[:16]}...)")
-        elif sha256_file(path) != rec.sha256:
-            problems.append(f"input {rec.path} has changed: sha256 {sha256_file(path)} is not the recorded "
-                            f"{rec.sha256}")
-        inputs.append(InputPlan(path=path, name=rec.name, kind=rec.kind_hint, reader=rec.reader, units=rec.units,
-                                viewpoints=rec.viewpoints, sha256=rec.sha256, params=rec.params))
-    return inputs
-
-
-def _stage_plan(eid: str, rec: StageRecord, registry: Registry, warnings: list[str]) -> StagePlan:
-    """The installed stage a record names, with its recorded params; a version change is a warning."""
-    try:
-        spec = registry.get(rec.uses)
-    except PluginError as exc:
-        raise GdtError(f"epoch {eid} was made with stage {rec.uses!r} ({rec.plugin} {rec.plugin_version}), which "
-                       f"is not installed: {exc}") from exc
-    if (spec.plugin_version, spec.version) != (rec.plugin_version, rec.version):
-        warnings.append(f"epoch {eid}: stage {spec.name!r} was made with {rec.plugin} {rec.plugin_version} (stage "
-                        f"{rec.version}); installed is {spec.plugin} {spec.plugin_version} (stage {spec.version})")
-    try:
-        params = spec.params.model_validate(rec.params)
-    except ValidationError as exc:
-        raise GdtError(f"epoch {eid}: the recorded params of stage {spec.name!r} no longer validate against the "
-                       f"installed version: {exc.errors(include_url=False)}") from exc
-    return StagePlan(index=rec.index, spec=spec, params=params, id=rec.id)
-
-
-def plan_from_twin(store: TwinStore, registry: Registry, upto: str, *, base_dir: Path | None = None
+def plan_from_twin(store: TwinStore, registry: Registry, epochs: list[str], *, base_dir: Path | None = None
                    ) -> tuple[RunPlan, list[str], dict[str, list[str]]]:
-    """The run plan recorded in a twin's provenance up to epoch ``upto``; version warnings; input problems."""
-    epochs = store.epochs()
+    """The run plan a twin's provenance records for ``epochs``; version warnings; input problems per epoch."""
     warnings: list[str] = []
     problems: dict[str, list[str]] = {}
     plans: list[EpochPlan] = []
-    first = EpochProvenance.from_dict(store.provenance(epochs[0]))
-    wf = first.workflow
-    if wf.dir_from_twin is None and base_dir is None:
-        raise GdtError(f"{store.path}: its provenance does not say where the inputs were (made by an older gdt); "
-                       f"pass --inputs-dir")
-    base = (base_dir or (store.path / wf.dir_from_twin)).resolve()
-    for eid in epochs[: epochs.index(upto) + 1]:
-        prov = EpochProvenance.from_dict(store.provenance(eid))
+    records = [EpochProvenance.from_dict(store.provenance(eid)) for eid in epochs]
+    for eid, prov in zip(epochs, records, strict=True):
         found: list[str] = []
-        inputs = _input_plans(prov, base, found)
+        inputs = recorded_inputs(prov, inputs_dir(store, prov, base_dir), found)
         if found:
             problems[eid] = found
-        stages = [_stage_plan(eid, rec, registry, warnings) for rec in prov.stages]
+        stages = [recorded_stage(eid, rec, registry, warnings) for rec in prov.stages]
         plans.append(EpochPlan(id=eid, index=prov.epoch.index, role=prov.epoch.role, inputs=inputs, stages=stages))
+    wf = records[0].workflow
+    base = inputs_dir(store, records[0], base_dir)
     plan = RunPlan(name=wf.name, workflow_path=base / wf.path, workflow_sha256=wf.sha256, base_dir=base,
-                   seed=int(first.seed), units=wf.units, up_axis=wf.up_axis, epochs=plans)
+                   seed=int(records[0].seed), units=wf.units, up_axis=wf.up_axis, epochs=plans)
     return plan, warnings, problems
 
 
@@ -211,21 +177,21 @@ def recorded_tiling(store: TwinStore, epochs: list[str]) -> TilingOptions | None
 
 def audit_twin(twin: str | Path, *, epoch: str | None = None, strict: bool = False, base_dir: Path | None = None,
                rtol: float = 1e-6, atol: float = 1e-9, registry: Registry | None = None) -> AuditReport:
-    """Re-run a twin's epochs (up to ``epoch``, default all) from their provenance and compare with what is stored."""
+    """Re-run a twin's epochs from their provenance and compare with what is stored: all of them, or only ``epoch``
+    (from the twin's composite before it, with that epoch's own inputs alone)."""
     registry = registry or load_registry()
     store = TwinStore.open(twin)
     epochs = store.epochs()
     if not epochs:
         raise GdtError(f"twin {twin} has no epochs to audit")
-    upto = epoch or epochs[-1]
-    if upto not in epochs:
-        raise GdtError(f"twin {twin} has no epoch {upto!r} (epochs: {', '.join(epochs)})")
+    if epoch is not None and epoch not in epochs:
+        raise GdtError(f"twin {twin} has no epoch {epoch!r} (epochs: {', '.join(epochs)})")
     store.verify()  # a layer that is not the file that was written is an error before anything is re-run
     report = AuditReport(twin=str(Path(twin).resolve()), strict=strict)
-    plan, report.warnings, problems = plan_from_twin(store, registry, upto, base_dir=base_dir)
+    audited = epochs if epoch is None else [epoch]
+    plan, report.warnings, problems = plan_from_twin(store, registry, audited, base_dir=base_dir)
     lock_problems = store.run_lock_problems()
     report.warnings += lock_problems
-    audited = epochs[: epochs.index(upto) + 1]
     if strict and lock_problems:  # the run record is what a strict audit checks first: no re-run can pass it
         report.epochs += [EpochAudit(e, "not re-run", input_problems=["strict: the run record gdt.lock has "
                                                                        "problems (see the warnings)"])
@@ -233,12 +199,8 @@ def audit_twin(twin: str | Path, *, epoch: str | None = None, strict: bool = Fal
         return report
     broken = next((i for i, e in enumerate(audited) if e in problems), None)
     runnable = audited if broken is None else audited[:broken]
-    rerun_store = None
-    with tempfile.TemporaryDirectory(prefix="gdt-audit-") as scratch:
-        if runnable:
-            sub = RunPlan(**{**plan.__dict__, "epochs": plan.epochs[: len(runnable)]})
-            rerun = execute_plan(sub, registry, Path(scratch) / "twin", tiling=recorded_tiling(store, runnable))
-            rerun_store = TwinStore.open(rerun.twin)
+    with _scratch(store) as scratch:
+        rerun_store = _rerun(store, registry, plan, runnable, epochs.index(audited[0]), scratch)
         for i, eid in enumerate(audited):
             if eid in problems:
                 report.epochs.append(EpochAudit(eid, "inputs changed", input_problems=problems[eid]))
@@ -248,10 +210,37 @@ def audit_twin(twin: str | Path, *, epoch: str | None = None, strict: bool = Fal
                     f"builds on epoch {audited[broken]}, whose inputs changed"]))
                 continue
             assert rerun_store is not None
-            diffs, exact = compare_element_sets(store.read_epoch(eid), rerun_store.read_epoch(eid), rtol=rtol,
-                                                atol=atol)
-            keys_a = [s.cache_key for s in EpochProvenance.from_dict(store.provenance(eid)).stages]
-            keys_b = [s.cache_key for s in EpochProvenance.from_dict(rerun_store.provenance(eid)).stages]
-            report.epochs.append(EpochAudit(eid, "match" if not diffs else "differs", exact=exact,
-                                            cache_keys_match=keys_a == keys_b, differences=diffs))
+            report.epochs.append(_compared(store, rerun_store, eid, rtol, atol))
     return report
+
+
+@contextlib.contextmanager
+def _scratch(store: TwinStore) -> Iterator[Path]:
+    """A scratch folder for the re-run: beside the twin where that is writable (the kept layers are then hard
+    links, whatever their size), else in the system's temp folder (they are copied)."""
+    parent = store.path.resolve().parent
+    where = parent if os.access(parent, os.W_OK) else None
+    with tempfile.TemporaryDirectory(prefix=f".{store.path.name}.audit-", dir=where) as scratch:
+        yield Path(scratch)
+
+
+def _rerun(store: TwinStore, registry: Registry, plan: RunPlan, runnable: list[str], first: int, scratch: Path
+           ) -> TwinStore | None:
+    """Re-run the ``runnable`` epochs into a scratch twin that starts as the stored twin's first ``first`` epochs."""
+    if not runnable:
+        return None
+    target = scratch / "twin"
+    sub = dataclasses.replace(plan, epochs=plan.epochs[: len(runnable)])
+    if first:
+        store.branch(target, store.epochs()[:first])
+    rerun = execute_plan(sub, registry, target, append=bool(first), tiling=recorded_tiling(store, runnable))
+    return TwinStore.open(rerun.twin)
+
+
+def _compared(store: TwinStore, rerun_store: TwinStore, eid: str, rtol: float, atol: float) -> EpochAudit:
+    """The verdict on one re-run epoch: its element sets and cache keys against the stored ones."""
+    diffs, exact = compare_element_sets(store.read_epoch(eid), rerun_store.read_epoch(eid), rtol=rtol, atol=atol)
+    keys_a = [s.cache_key for s in EpochProvenance.from_dict(store.provenance(eid)).stages]
+    keys_b = [s.cache_key for s in EpochProvenance.from_dict(rerun_store.provenance(eid)).stages]
+    return EpochAudit(eid, "match" if not diffs else "differs", exact=exact, cache_keys_match=keys_a == keys_b,
+                      differences=diffs)

@@ -57,6 +57,7 @@ class WorkflowRecord:
     dir_from_twin: str | None = None
     units: str = "m"
     up_axis: str = "Z"
+    text: str | None = None  # the workflow as it ran (``gdt add`` writes one; a file may change after the run)
 
 
 @dataclass(frozen=True)

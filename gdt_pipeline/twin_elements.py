@@ -10,7 +10,7 @@ import numpy as np
 
 from twin_store import ElementSet, TwinStore
 
-from .types import ChangeState, Composite
+from .types import ChangeState, Composite, Dataset
 
 
 def composite_to_elements(composite: Composite) -> list[ElementSet]:
@@ -32,8 +32,15 @@ def composite_to_elements(composite: Composite) -> list[ElementSet]:
                               reason=it.reason, reason_ratio=it.reason_ratio.astype(np.float32),
                               area_seen=_f32(it.area_seen), area_removed=_f32(it.area_removed),
                               intensity=_f32(ds.fields.get("intensity")), scan_color=_f32(ds.fields.get("color")),
-                              identity=dict(ds.meta) or None))
+                              identity=dict(ds.meta) or None, classification=_classes(ds),
+                              item={"epoch": it.epoch, "role": ds.role, "name": ds.name}))
     return out
+
+
+def _classes(ds: Dataset) -> np.ndarray | None:
+    """The LAS classes of a dataset's points, as uint8 (None when its reader gave none)."""
+    values = ds.fields.get("classification")
+    return None if values is None else np.asarray(values).astype(np.uint8)
 
 
 def _f32(values: np.ndarray | None) -> np.ndarray | None:

@@ -54,6 +54,8 @@ class ElementSet:
     scan_color: np.ndarray | None = None  # (E,3) colour from the scan file, 0..1
     identity: dict[str, str] | None = None  # who the set is outside the twin (IFC GlobalId and class, part name)
     dof: np.ndarray | None = None  # (E,) Student t degrees of freedom of a heavy-tailed gaussian (covariance: scale)
+    classification: np.ndarray | None = None  # (E,) uint8 ASPRS class from a LAS/LAZ file
+    item: dict[str, str] | None = None  # what brought the set in: {"epoch", "role", "name"} of the dataset
 
     def __post_init__(self) -> None:
         if not Tf.IsValidIdentifier(self.key):
@@ -76,7 +78,8 @@ class ElementSet:
         shapes = {"uncertainty_summary": (n,), "state": (n,), "score": (n,), "source_epoch": (n,), "visible": (n,),
                   "covariance": (n, 6), "half_widths": (n, 3), "rotation": (n, 3, 3), "ids": (n,),
                   "display_color": (n, 3), "p_value": (n,), "reason": (n,), "reason_ratio": (n,),
-                  "area_seen": (n,), "area_removed": (n,), "intensity": (n,), "scan_color": (n, 3), "dof": (n,)}
+                  "area_seen": (n,), "area_removed": (n,), "intensity": (n,), "scan_color": (n, 3), "dof": (n,),
+                  "classification": (n,)}
         for name, shape in shapes.items():
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
@@ -145,6 +148,9 @@ def primvar_values(es: ElementSet) -> Primvars:
     if es.scan_color is not None:
         out["gdt:scanColor"] = (types.Color3fArray, interp, np.asarray(es.scan_color, np.float32), 1,
                                 names.DOC_SCAN_COLOR)
+    if es.classification is not None:
+        out["gdt:classification"] = (types.UCharArray, interp, np.asarray(es.classification, np.uint8), 1,
+                                     names.DOC_CLASSIFICATION)
     if es.dof is not None:
         out["gdt:studentDof"] = (types.FloatArray, interp, np.asarray(es.dof, np.float32), 1, DOC_DOF)
     if es.rotation is not None:
@@ -205,6 +211,8 @@ def define_element_set(stage: Usd.Stage, es: ElementSet) -> None:
         geom.MakeInvisible()
     if es.identity:
         geom.GetPrim().SetCustomDataByKey(names.IDENTITY_KEY, {str(k): str(v) for k, v in es.identity.items()})
+    if es.item:
+        geom.GetPrim().SetCustomDataByKey(names.ITEM_KEY, {str(k): str(v) for k, v in es.item.items()})
     api = UsdGeom.PrimvarsAPI(geom.GetPrim())
     model = api.CreatePrimvar("gdt:uncertaintyModel", Sdf.ValueTypeNames.Token, UsdGeom.Tokens.constant)
     model.Set(es.uncertainty_model)
@@ -318,10 +326,16 @@ def read_element_set(prim: Usd.Prim) -> ElementSet:
         reason_ratio=pv("gdt:fusionRatio", np.float32), area_seen=pv("gdt:areaSeen", np.float32),
         area_removed=pv("gdt:areaRemoved", np.float32), intensity=pv("gdt:intensity", np.float32),
         scan_color=pv("gdt:scanColor", np.float32, (-1, 3)), identity=identity_of(prim),
-        dof=pv("gdt:studentDof", np.float32))
+        dof=pv("gdt:studentDof", np.float32), classification=pv("gdt:classification", np.uint8),
+        item=_custom(prim, names.ITEM_KEY))
 
 
 def identity_of(prim: Usd.Prim) -> dict[str, str] | None:
     """A set's identity outside the twin (customData ``gdt:identity``), None when it has none."""
-    value = prim.GetCustomDataByKey(names.IDENTITY_KEY)
+    return _custom(prim, names.IDENTITY_KEY)
+
+
+def _custom(prim: Usd.Prim, key: str) -> dict[str, str] | None:
+    """A string dictionary the prim keeps in its customData under ``key``, None when it has none."""
+    value = prim.GetCustomDataByKey(key)
     return {str(k): str(v) for k, v in value.items()} if value else None

@@ -56,6 +56,10 @@ DOC_INTENSITY = "Return intensity per element as the scan file gave it (E57, LAS
 DOC_SCAN_COLOR = "Colour per element as the scan file gave it (E57, LAS RGB), 0..1 (displayColor shows the change)."
 # customData key of a set's identity outside the twin: part name, IFC GlobalId and class, E57 scan guid
 IDENTITY_KEY = "gdt:identity"
+DOC_CLASSIFICATION = "ASPRS class per point as the LAS/LAZ file gave it (2 ground, 6 building, ...)."
+# customData key of what brought a set in: the epoch, its role (as-designed, as-is) and the dataset's name, so that a
+# later epoch reads back the composite item a run handed on
+ITEM_KEY = "gdt:item"
 
 
 def state_colours(state: np.ndarray) -> np.ndarray:

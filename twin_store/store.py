@@ -24,6 +24,7 @@ import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from . import guides
+from .branch import branch
 from .elements import ElementSet, define_element_set, identity_of, override_element_set, read_element_set
 from .errors import TwinStoreError
 from .history import EpochEntry, SetDiff, count_states, set_diff
@@ -262,11 +263,29 @@ class TwinStore:
     def read_epoch(self, epoch_id: str, keys: Iterable[str] | None = None) -> list[ElementSet]:
         """The composite as it was at ``epoch_id`` (only the layers up to it are composed); only the sets named in
         ``keys`` when given."""
+        return list(self.iter_epoch(epoch_id, keys))
+
+    def iter_epoch(self, epoch_id: str, keys: Iterable[str] | None = None) -> Iterator[ElementSet]:
+        """The sets of the composite at ``epoch_id`` one at a time (payload sets too), so that a reader holds one
+        set's arrays beside what it made of the others; only the sets named in ``keys`` when given."""
         stage = self._stage_upto(self._epochs_upto(epoch_id))
         twin = stage.GetPrimAtPath(TWIN_PRIM)
         wanted = None if keys is None else set(keys)
-        return [read_element_set(child) for child in (twin.GetChildren() if twin else [])
-                if wanted is None or child.GetName() in wanted]
+        for child in twin.GetChildren() if twin else []:
+            if wanted is None or child.GetName() in wanted:
+                yield read_element_set(child)
+
+    def branch(self, target: str | Path, epochs: Sequence[str]) -> tuple[TwinStore, int]:
+        """A new twin folder at ``target`` holding this twin's oldest ``epochs``, each layer verified and then hard
+        linked (copied where the filesystem cannot link); the new store and how many files were copied. The caller
+        holds the lock of the twin the folder will become."""
+        held = self.epochs()
+        if list(epochs) != held[: len(epochs)]:
+            raise TwinStoreError(f"{self._path}: {list(epochs)} are not its oldest epochs ({', '.join(held)})")
+        for eid in epochs:
+            self._layer(eid)
+        copied = branch(self._path, Path(target), epochs, self.layer_digests())
+        return TwinStore(Path(target), lock=False), copied
 
     def iter_sets(self, epoch_id: str) -> Iterator[LeanSet]:
         """The sets of the twin at ``epoch_id`` one at a time, each array read only when asked for (``lean``), with

@@ -1,8 +1,8 @@
 """The ``gdt`` command line: the click group, its commands and the error handling of ``main``.
 
-Commands: workflow_commands (run, validate, plugins, schema), twin_commands (log, show, diff, export, audit,
-calibrate), lab_commands (scene, simulate, eval). Errors end with a one-paragraph message and a non-zero exit code
-(1: the input or workflow is wrong; 70: a bug in gdt or a plugin); ``--debug`` adds the traceback.
+Commands: workflow_commands (run, validate, plugins, schema), add_command (add), twin_commands (log, show, diff,
+export, audit, calibrate), lab_commands (scene, simulate, eval). Errors end with a one-paragraph message and a
+non-zero exit code (1: the input or workflow is wrong; 70: a bug in gdt or a plugin); ``--debug`` adds the traceback.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from twin_store import TwinStoreError
 
 from .. import __version__
 from ..errors import GdtError
-from . import lab_commands, twin_commands, workflow_commands
+from . import add_command, lab_commands, twin_commands, workflow_commands
 from .common import EXIT_ERROR, EXIT_INTERNAL, err_console, out_console, setup_logging
 
 __all__ = ["EXIT_ERROR", "EXIT_INTERNAL", "cli", "err_console", "main", "out_console", "setup_logging"]
@@ -34,7 +34,8 @@ def cli(ctx: click.Context, debug: bool) -> None:
     ctx.obj["debug"] = debug
 
 
-for _command in workflow_commands.COMMANDS + lab_commands.COMMANDS + twin_commands.COMMANDS:
+for _command in (workflow_commands.COMMANDS + add_command.COMMANDS + lab_commands.COMMANDS
+                 + twin_commands.COMMANDS):
     cli.add_command(_command)
 
 

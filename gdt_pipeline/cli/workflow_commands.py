@@ -67,7 +67,10 @@ def rich_reporter(progress: Progress | None) -> Any:
 @click.command()
 @click.argument("workflow", type=click.Path(path_type=Path))
 @click.option("--twin", type=click.Path(path_type=Path), help="Write the twin here instead of the workflow's `twin:`.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing twin (only once the new one is complete).")
+@click.option("--overwrite", is_flag=True,
+              help="Rebuild an existing twin from its first epoch (replaced only once the new one is complete).")
+@click.option("--from", "from_epoch", metavar="EPOCH",
+              help="Keep the twin's epochs before EPOCH as they are and rebuild from EPOCH on.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress output.")
 @click.option("-v", "--verbose", count=True, help="More log output (-v info, -vv debug).")
 @click.option("--log-file", type=click.Path(path_type=Path), help="Append a structured JSON-lines log here.")
@@ -80,10 +83,11 @@ def rich_reporter(progress: Progress | None) -> Any:
 @click.option("--address", help="Dask scheduler to use (tcp://host:8786) instead of a local cluster.")
 @click.option("--report/--no-report", default=True, show_default=True,
               help="Write the HTML report of the last epoch beside the twin (<twin>_report.html; `gdt report`).")
-def run(workflow: Path, twin: Path | None, overwrite: bool, quiet: bool, verbose: int, log_file: Path | None,
-        executor: str | None, workers: int | None, tile: float | None, tile_elements: int | None,
-        address: str | None, report: bool) -> None:
-    """Run WORKFLOW end to end, write its twin, and end with a summary (and the report's path)."""
+def run(workflow: Path, twin: Path | None, overwrite: bool, from_epoch: str | None, quiet: bool, verbose: int,
+        log_file: Path | None, executor: str | None, workers: int | None, tile: float | None,
+        tile_elements: int | None, address: str | None, report: bool) -> None:
+    """Run WORKFLOW, write its twin, and end with a summary (and the report's path). On an existing twin only the
+    epochs it does not hold yet run; they are appended, and the twin's earlier epochs stay as they were."""
     from ..runner import run_workflow
     from ..workflow import load_workflow
 
@@ -91,22 +95,44 @@ def run(workflow: Path, twin: Path | None, overwrite: bool, quiet: bool, verbose
     registry = installed_registry()
     tiling = _tiling(load_workflow(workflow, registry).model.execution, executor, workers, tile, tile_elements,
                      address)
-    kwargs = {"registry": registry, "twin": twin, "overwrite": overwrite, "tiling": tiling}
+    if overwrite and from_epoch:
+        raise click.UsageError("--overwrite rebuilds every epoch, --from only the later ones: give one of them")
+    kwargs = {"registry": registry, "twin": twin, "overwrite": overwrite, "from_epoch": from_epoch, "tiling": tiling}
     if quiet:
         result = run_workflow(workflow, **kwargs)
     else:
         with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
                       console=err_console, transient=True) as progress:
             result = run_workflow(workflow, reporter=rich_reporter(progress), **kwargs)
+    say_kept(result)
+    if not result.epochs:
+        return
     out_console.print(f"twin written to {result.twin}", highlight=False, soft_wrap=True)
     out_console.print(f"root layer: {result.twin / 'twin.usda'}   lock: {result.lock}", highlight=False,
                       soft_wrap=True)
     Console(width=max(120, out_console.width)).print(run_summary(result.twin))
     if report:
-        _write_run_report(result.twin)
+        write_run_report(result.twin)
 
 
-def _write_run_report(twin: Path) -> None:
+def say_kept(result: Any) -> None:
+    """Which of the twin's epochs the run kept, rebuilt or took on trust; that it is up to date, when it ran none."""
+    for note in result.notes:
+        err_console.print(f"note: {note}", highlight=False, soft_wrap=True)
+    if result.kept:
+        ran = ", ".join(s.id for s in result.epochs)
+        out_console.print(f"kept {len(result.kept)} epoch{'s' if len(result.kept) != 1 else ''} of the twin as they "
+                          f"were ({', '.join(result.kept)})" + (f"; ran {ran}" if ran else ""), highlight=False,
+                          soft_wrap=True)
+    if result.replaced:
+        out_console.print(f"rebuilt from {result.replaced[0]}: the twin's {', '.join(result.replaced)} replaced",
+                          highlight=False, soft_wrap=True)
+    if not result.epochs:
+        out_console.print(f"twin {result.twin} is up to date: it holds every epoch of the workflow (nothing ran, "
+                          f"nothing was written)", highlight=False, soft_wrap=True)
+
+
+def write_run_report(twin: Path) -> None:
     """The report beside the twin; a report that cannot be written is a warning: the twin is complete and kept."""
     from twin_store import TwinStoreError
 
@@ -144,24 +170,62 @@ def _tiling(execution: Any, executor: str | None, workers: int | None, tile: flo
 
 @click.command()
 @click.argument("workflows", nargs=-1, required=True, type=click.Path(path_type=Path))
-def validate(workflows: tuple[Path, ...]) -> None:
-    """Check WORKFLOWS without running them: schema, stage names, parameters, slots, input files."""
+@click.option("--twin", type=click.Path(path_type=Path),
+              help="Also check each workflow against this twin: which epochs a run keeps, which it runs, and any "
+                   "held epoch it describes otherwise.")
+def validate(workflows: tuple[Path, ...], twin: Path | None) -> None:
+    """Check WORKFLOWS without running them: schema, stage names, parameters, slots, input files (and, with
+    --twin, the epochs the twin already holds)."""
     from ..workflow import load_workflow
 
     registry = installed_registry()
     failed = 0
     for wf_path in workflows:
         try:
-            wf = load_workflow(wf_path, registry)
-        except WorkflowError as exc:
+            held = _held(wf_path, twin, registry)
+            wf = load_workflow(wf_path, registry, held=held)
+            against = _against_twin(wf, twin, registry) if twin is not None else ""
+        except (WorkflowError, GdtError) as exc:
             failed += 1
-            for line in exc.problems:
+            for line in getattr(exc, "problems", None) or [f"{wf_path}: {exc}"]:
                 click.echo(line)
             continue
         m = wf.model
-        click.echo(f"{wf.path}: ok ({len(m.epochs)} epochs, {len(m.stages)} stages, twin {wf.twin_path()})")
+        click.echo(f"{wf.path}: ok ({len(m.epochs)} epochs, {len(m.stages)} stages, twin {wf.twin_path()})"
+                   + against)
     if failed:
         raise SystemExit(EXIT_ERROR)
+
+
+def _held(wf_path: Path, twin: Path | None, registry: Any) -> frozenset[str]:
+    """The epochs of the twin checked against whose input files may be gone."""
+    from ..runner.execute import held_epochs
+    from ..workflow import load_workflow
+
+    if twin is None:
+        return frozenset()
+    load_workflow(wf_path, registry, check_files=False)  # the schema's problems first, without the files'
+    return held_epochs(Path(twin).resolve())
+
+
+def _against_twin(wf: Any, twin: Path, registry: Any) -> str:
+    """What a run of the workflow would do on the twin; a GdtError naming a held epoch it describes otherwise."""
+    from twin_store import TwinStore, TwinStoreError
+
+    from ..runner import plan_from_workflow
+    from ..runner.history import start_on
+
+    if not (Path(twin) / "twin.usda").is_file():
+        return f"; no twin at {twin} yet: a run makes it"
+    try:
+        store = TwinStore.open(twin)
+        store.verify()
+    except TwinStoreError as exc:
+        raise GdtError(str(exc)) from exc
+    start = start_on(plan_from_workflow(wf, registry), store)
+    todo = [e.id for e in wf.model.epochs][len(start.kept):] if not start.extra else []
+    return (f"; against {twin}: keeps {', '.join(start.kept) or 'nothing'}, runs {', '.join(todo) or 'nothing'}"
+            + "".join(f"\n  note: {n}" for n in start.notes))
 
 
 @click.command()

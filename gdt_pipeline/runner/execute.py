@@ -45,10 +45,13 @@ from ..provenance import (
 )
 from ..tiling.grid import extent
 from ..twin_elements import composite_to_elements
+from ..twin_reference import stored_composite
 from ..types import Composite, Dataset, EpochInfo, Registration
 from ..workflow import load_workflow
+from .history import Start, start_on
 from .inputs import input_digests, read_input, relative_to_workflow
 from .plan import EpochPlan, InputPlan, RunPlan, StagePlan, plan_from_workflow
+from .run_record import add_epoch, start_record
 from .stage_call import run_stage, stage_rng, stage_survey
 from .staging import check_overwritable, recover, staging_path, swap_into_place, write_json_atomic
 from .tiled import TileSession, TilingOptions, chain_runs, run_tiles, tileable
@@ -77,6 +80,9 @@ class RunResult:
     twin: Path
     lock: Path
     epochs: list[EpochSummary] = field(default_factory=list)
+    kept: list[str] = field(default_factory=list)  # the twin's epochs the run kept as they were (not re-run)
+    replaced: list[str] = field(default_factory=list)  # the twin's epochs it rebuilt (``--from``)
+    notes: list[str] = field(default_factory=list)  # what it took on trust (kept inputs whose files are gone)
 
 
 class Reporter:
@@ -114,21 +120,37 @@ class _RunContext:
 
 
 def run_workflow(path: str | Path, *, registry: Registry | None = None, twin: str | Path | None = None,
-                 overwrite: bool = False, reporter: Reporter | None = None,
+                 overwrite: bool = False, from_epoch: str | None = None, reporter: Reporter | None = None,
                  tiling: TilingOptions | None = None) -> RunResult:
-    """Run a workflow file end to end and write its twin; return where it went. ``tiling`` overrides the workflow's
-    ``execution`` block."""
+    """Run a workflow file and write its twin; return where it went. On an existing twin only the epochs it does
+    not hold run (``from_epoch``: rebuild from that epoch on; ``overwrite``: rebuild all). ``tiling`` overrides the
+    workflow's ``execution`` block."""
     registry = registry or load_registry()
-    wf = load_workflow(path, registry)
+    wf = load_workflow(path, registry, check_files=False)
     target = Path(twin).resolve() if twin is not None else wf.twin_path()
+    wf = load_workflow(path, registry, held=held_epochs(target, overwrite, from_epoch))
     plan = plan_from_workflow(wf, registry)
-    return execute_plan(plan, registry, target, overwrite=overwrite, reporter=reporter,
+    return execute_plan(plan, registry, target, overwrite=overwrite, from_epoch=from_epoch, reporter=reporter,
                         tiling=tiling if tiling is not None else plan.tiling)
 
 
+def held_epochs(target: Path, overwrite: bool = False, from_epoch: str | None = None) -> frozenset[str]:
+    """The epochs of the twin at ``target`` a run keeps at most, whose input files need not exist any more."""
+    if overwrite or not (target / "twin.usda").is_file():
+        return frozenset()
+    try:
+        held = TwinStore.open(target).epochs()
+    except TwinStoreError:
+        return frozenset()
+    return frozenset(held[: held.index(from_epoch)] if from_epoch in held else held)
+
+
 def execute_plan(plan: RunPlan, registry: Registry, target: Path, *, overwrite: bool = False,
-                 reporter: Reporter | None = None, tiling: TilingOptions | None = None) -> RunResult:
-    """Run a plan into the twin at ``target``, holding the twin's writer lock (``tiling``: cut epochs into tiles)."""
+                 from_epoch: str | None = None, append: bool = False, reporter: Reporter | None = None,
+                 tiling: TilingOptions | None = None) -> RunResult:
+    """Run a plan into the twin at ``target``, holding the twin's writer lock (``tiling``: cut epochs into tiles).
+    On an existing twin, the epochs it holds that match the plan are kept and only the others run; ``append``
+    keeps every epoch the twin holds, unchecked, and runs the plan's epochs after them (``gdt add``, audits)."""
     reporter = reporter or Reporter()
     target = Path(target).resolve()
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -140,49 +162,72 @@ def execute_plan(plan: RunPlan, registry: Registry, target: Path, *, overwrite: 
         with writer_lock(target), contextlib.ExitStack() as stack:
             if tiles is not None:
                 stack.enter_context(tiles.stack)
-            return _run_locked(plan, registry, reporter, target, overwrite, tiles)
+            return _run_locked(plan, registry, reporter, target, (overwrite, from_epoch, append), tiles)
     except TwinStoreError as exc:
         raise GdtError(str(exc)) from exc
 
 
-def _check_target(target: Path, overwrite: bool) -> None:
+def _start(plan: RunPlan, target: Path, overwrite: bool, from_epoch: str | None, append: bool) -> Start | None:
+    """Where the run starts: None for a new twin (none there, or ``overwrite``), else the twin's epochs it keeps
+    (``append``: all of them)."""
     recover(target)
-    if target.exists() and not overwrite:
-        raise GdtError(f"twin {target} already exists; pass --overwrite to replace it (the old twin stays intact "
-                       f"until the new one is complete)")
     if target.exists() and not (target / "twin.usda").is_file():
         raise GdtError(f"{target} exists and is not a twin (no twin.usda); refusing to replace it")
+    if append and not target.exists():
+        raise GdtError(f"no twin at {target} to add an epoch to")
     if target.exists():
-        check_overwritable(target)
+        check_overwritable(target, "--overwrite replaces" if overwrite else "a run on a twin rewrites")
+    if not target.exists() or overwrite:
+        if from_epoch is not None and from_epoch not in [e.id for e in plan.epochs]:
+            raise GdtError(f"--from {from_epoch}: the workflow has no such epoch "
+                           f"({', '.join(e.id for e in plan.epochs)})")
+        return None
+    store = TwinStore.open(target)
+    store.verify()  # a twin that is not what was written is never built on
+    return Start(kept=store.epochs()) if append else start_on(plan, store, from_epoch)
 
 
 def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: Path,
-                overwrite: bool, tiles: TileSession | None) -> RunResult:
-    _check_target(target, overwrite)
-    run = _RunContext(plan, registry, reporter, input_digests(plan), package_versions(),
+                mode: tuple[bool, str | None, bool], tiles: TileSession | None) -> RunResult:
+    start = _start(plan, target, *mode)
+    kept = [] if start is None else start.kept
+    result = RunResult(twin=target, lock=target / LOCK_NAME, kept=list(kept),
+                       replaced=[] if start is None else list(start.replaced),
+                       notes=[] if start is None else list(start.notes))
+    todo = [e for e in plan.epochs if e.index >= len(kept)] if start is None or not start.extra else []
+    if start is not None and not todo:
+        return result  # the twin holds every epoch of the workflow: nothing to run, nothing rewritten
+    run = _RunContext(plan, registry, reporter, input_digests(plan, todo), package_versions(),
                       WorkflowRecord(path=relative_to_workflow(plan.workflow_path, plan.base_dir),
                                      sha256=plan.workflow_sha256, name=plan.name,
                                      dir_from_twin=os.path.relpath(plan.base_dir, target), units=plan.units,
-                                     up_axis=plan.up_axis), tiles)
+                                     up_axis=plan.up_axis, text=plan.workflow_text), tiles)
     staging = staging_path(target)
     if staging.exists():
         shutil.rmtree(staging)
-    lock: dict[str, Any] = {"format": 1, "workflow": dataclasses.asdict(run.workflow), "seed": plan.seed,
-                            "packages": run.packages, "epochs": []}
-    result = RunResult(twin=target, lock=target / LOCK_NAME)
     try:
-        store = TwinStore.create(staging, meters_per_unit=UNITS[plan.units], up_axis=plan.up_axis, lock=False)
-        composite: Composite | None = None
-        epoch_key: str | None = None
-        for epoch in plan.epochs:
+        if kept:
+            store, copied = TwinStore.open(target).branch(staging, kept)
+            if copied:
+                log.warning("the filesystem cannot hard-link: %d layer files of the kept epochs were copied", copied)
+        else:
+            store = TwinStore.create(staging, meters_per_unit=UNITS[plan.units], up_axis=plan.up_axis, lock=False)
+        lock = start_record(run.workflow, plan.seed, run.packages, target, store, kept)
+        roles = {**{e.id: e.role for e in plan.epochs}, **_recorded_roles(store, kept)}
+        composite = stored_composite(store, kept[-1], roles) if kept else None
+        epoch_key = EpochProvenance.from_dict(store.provenance(kept[-1])).epoch_key if kept else None
+        for epoch in todo:
             t_epoch = time.perf_counter()
             prov, slots = _run_epoch(run, epoch, composite, epoch_key)
-            composite, epoch_key = slots["composite"], prov.epoch_key
+            epoch_key, composite = prov.epoch_key, None
             summary = _write_epoch(store, prov, slots, target, time.perf_counter() - t_epoch)
             del slots  # this epoch's datasets, matches and scores must not stay alive through the next epoch
+            if epoch is not todo[-1]:
+                # what the next epoch sees is what the twin stores: the same whether it runs now or in an append
+                composite = stored_composite(store, epoch.id, roles)
             result.epochs.append(summary)
             reporter.epoch_finished(summary)
-            lock["epochs"].append(prov.lock_entry())
+            add_epoch(lock, prov)
         lock["layer_sha256"] = store.layer_digests()
         write_json_atomic(staging / LOCK_NAME, lock)
         fault("lock-written")
@@ -192,6 +237,11 @@ def _run_locked(plan: RunPlan, registry: Registry, reporter: Reporter, target: P
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return result
+
+
+def _recorded_roles(store: TwinStore, epochs: list[str]) -> dict[str, str]:
+    """The role each of the twin's epochs was run in (for sets written before the twin kept their own)."""
+    return {eid: EpochProvenance.from_dict(store.provenance(eid)).epoch.role for eid in epochs}
 
 
 def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, epoch_key: str | None

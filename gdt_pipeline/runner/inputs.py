@@ -177,10 +177,11 @@ def read_input(plan: RunPlan, registry: Registry, epoch: EpochPlan, i_index: int
     return resolve_poses(scaled, inp.path, inp.viewpoints, scale, where)
 
 
-def input_digests(plan: RunPlan) -> dict[tuple[int, int], str]:
-    """sha256 of every input, by (epoch index, input index), read before anything runs."""
+def input_digests(plan: RunPlan, epochs: list[EpochPlan] | None = None) -> dict[tuple[int, int], str]:
+    """sha256 of every input of ``epochs`` (default: all of the plan's), by (epoch index, input index), read before
+    anything runs."""
     digests: dict[tuple[int, int], str] = {}
-    for epoch in plan.epochs:
+    for epoch in plan.epochs if epochs is None else epochs:
         for i_index, inp in enumerate(epoch.inputs):
             try:
                 digests[(epoch.index, i_index)] = sha256_file(inp.path)

@@ -78,6 +78,7 @@ class RunPlan:
     up_axis: str
     epochs: list[EpochPlan]
     tiling: TilingOptions = TilingOptions()
+    workflow_text: str | None = None  # recorded in the provenance, so that what ran can be read back
 
 
 def plan_from_workflow(wf: LoadedWorkflow, registry: Registry) -> RunPlan:
@@ -96,4 +97,5 @@ def plan_from_workflow(wf: LoadedWorkflow, registry: Registry) -> RunPlan:
     tiling = TilingOptions(executor=ex.executor, workers=ex.workers, tile=ex.tile, address=ex.address,
                            max_elements=ex.tile_elements)
     return RunPlan(name=model.name, workflow_path=wf.path, workflow_sha256=wf.sha256, base_dir=wf.dir,
-                   seed=model.seed, units=model.units, up_axis=model.up_axis, epochs=epochs, tiling=tiling)
+                   seed=model.seed, units=model.units, up_axis=model.up_axis, epochs=epochs, tiling=tiling,
+                   workflow_text=wf.text)

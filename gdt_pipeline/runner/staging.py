@@ -32,13 +32,15 @@ def recover(target: Path) -> None:
             log.warning(message)
 
 
-def check_overwritable(target: Path) -> None:
-    """Refuse to replace a twin folder that holds files the twin does not own (the user's own files)."""
+def check_overwritable(target: Path, how: str = "--overwrite replaces") -> None:
+    """Refuse to replace a twin folder that holds files the twin does not own (the user's own files); ``how`` says
+    what would replace it."""
     foreign = foreign_files(target)
     if foreign:
         shown = ", ".join(foreign[:10]) + (f" and {len(foreign) - 10} more" if len(foreign) > 10 else "")
-        raise GdtError(f"refusing to overwrite twin {target}: it holds files the twin does not own ({shown}); "
-                       f"--overwrite replaces the whole folder, so move them out of it first")
+        verb = "overwrite" if how.startswith("--overwrite") else "write to"
+        raise GdtError(f"refusing to {verb} twin {target}: it holds files the twin does not own ({shown}); "
+                       f"{how} the whole folder, so move them out of it first")
 
 
 def write_json_atomic(path: Path, data: Any) -> None:

@@ -30,8 +30,10 @@ from .model import (
 from .stations import station_problems
 
 
-def load_workflow(path: str | Path, registry: Registry, *, check_files: bool = True) -> LoadedWorkflow:
-    """Read and validate a workflow file; raise :class:`WorkflowError` listing every problem found."""
+def load_workflow(path: str | Path, registry: Registry, *, check_files: bool = True,
+                  held: frozenset[str] = frozenset()) -> LoadedWorkflow:
+    """Read and validate a workflow file; raise :class:`WorkflowError` listing every problem found. The input files
+    of the epochs in ``held`` (a twin holds them) need not exist."""
     path = Path(path).resolve()
     text, data, marks = read_yaml(path)
     problems = Problems(path, marks)
@@ -48,10 +50,10 @@ def load_workflow(path: str | Path, registry: Registry, *, check_files: bool = T
         pydantic_problems(exc, data, registry, problems)
     slot_problems(data, registry, problems)
     if check_files:
-        reference_problems(data, registry, problems, path.parent)
+        reference_problems(data, registry, problems, path.parent, held)
         if model is not None:
             param_problems(model, registry, problems, path.parent)
-            station_problems(model, registry, problems, path.parent)
+            station_problems(model, registry, problems, path.parent, held)
     if problems.items:
         raise WorkflowError(str(path), problems.sorted())
     return LoadedWorkflow(path=path, sha256=hashlib.sha256(text.encode()).hexdigest(), model=model, text=text)

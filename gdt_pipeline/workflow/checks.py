@@ -134,8 +134,10 @@ def slot_problems(data: dict, registry: Registry, problems: Problems) -> None:
                                   f"{', '.join(no_final)}: end the chain with a fusion stage")
 
 
-def reference_problems(data: dict, registry: Registry, problems: Problems, base: Path) -> None:
-    """Checks that need more than the schema: epoch references, reader and executor names, input files present."""
+def reference_problems(data: dict, registry: Registry, problems: Problems, base: Path,
+                       held: frozenset[str] = frozenset()) -> None:
+    """Checks that need more than the schema: epoch references, reader and executor names, input files present
+    (except those of the epochs in ``held``, which a twin holds: their files may be gone)."""
     epochs = [e for e in listed(data.get("epochs")) if isinstance(e, dict)]
     ids = [e.get("id") for e in epochs]
     for s_index, entry in enumerate(listed(data.get("stages"))):
@@ -158,6 +160,8 @@ def reference_problems(data: dict, registry: Registry, problems: Problems, base:
     for e_index, epoch in enumerate(epochs):
         inputs = [(i, inp) for i, inp in enumerate(listed(epoch.get("inputs"))) if isinstance(inp, dict)]
         for i_index, inp in inputs:
+            if epoch.get("id") in held and not _exists(base, inp.get("path")):
+                continue
             input_problems(inp, ("epochs", e_index, "inputs", i_index), registry, problems, base)
         names = [str(inp.get("name") or Path(str(inp.get("path", ""))).stem) for _, inp in inputs]
         dups = sorted({n for n in names if names.count(n) > 1})
@@ -165,6 +169,14 @@ def reference_problems(data: dict, registry: Registry, problems: Problems, base:
             problems.add(("epochs", e_index, "inputs"),
                          f"dataset names must be unique within an epoch; repeated: {', '.join(dups)} "
                          f"(set `name:` on the inputs)")
+
+
+def _exists(base: Path, path: Any) -> bool:
+    """Whether an input's path names something that exists (False for what is not a usable path)."""
+    try:
+        return isinstance(path, str) and (base / path).exists()
+    except (OSError, ValueError):
+        return False
 
 
 def input_problems(inp: dict, loc: tuple, registry: Registry, problems: Problems, base: Path) -> None:

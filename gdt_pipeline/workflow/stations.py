@@ -40,14 +40,16 @@ def _has_station(inp: Any, base: Path) -> bool:
     return bool(inp.viewpoints) or path.suffix.lower() == ".e57" or pose_file_for(path).is_file()
 
 
-def station_problems(model: Any, registry: Registry, problems: Problems, base: Path) -> None:
-    """Each region-of-view entry that needs stations, checked against the inputs of the epochs it runs in."""
+def station_problems(model: Any, registry: Registry, problems: Problems, base: Path,
+                     held: frozenset[str] = frozenset()) -> None:
+    """Each region-of-view entry that needs stations, checked against the inputs of the epochs it runs in (not
+    those in ``held``: a twin holds them, they will not run)."""
     for s_index, entry in enumerate(model.stages):
         spec = registry.get(entry.uses)
         why = _needs_stations(spec, entry.with_)
         if why is None:
             continue
-        for epoch in model.epochs:
+        for epoch in (e for e in model.epochs if e.id not in held):
             missing = [inp.path for inp in epoch.inputs if not _has_station(inp, base)]
             if entry.applies_to(epoch) and missing:
                 problems.add(("stages", s_index, "uses"),

@@ -176,10 +176,13 @@ def test_empty_cloud(existing_twin) -> None:
     assert "empty" in res.stderr or "no points" in res.stderr
 
 
-def test_existing_twin_needs_overwrite(existing_twin) -> None:
+def test_a_run_on_a_twin_that_holds_every_epoch_changes_nothing(existing_twin) -> None:
     scene, wf, digest = existing_twin
     res = run_gdt("run", str(wf))
-    _assert_failed_cleanly(res, scene, digest, "already exists", "--overwrite")
+    assert res.returncode == 0, res.stderr
+    assert "up to date" in " ".join(res.stdout.split()) and "kept 2 epochs" in res.stdout
+    assert _tree_digest(scene.dir / "twin") == digest
+    assert not [p for p in scene.dir.glob(".twin.*") if p.name != ".twin.lock"]
 
 
 def test_stage_error_names_epoch_and_stage(existing_twin) -> None:

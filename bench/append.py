@@ -136,8 +136,9 @@ def report(n: int, runs: dict[int, list[dict]], peer_seconds: float) -> None:
     print(f"append of one {n:,}-point scan (medians of {len(runs[2])} runs; each run on a fresh copy of the twin)")
     for k, label in ((2, "as E1 to a twin of 1 epoch"), (7, "as E6 to a twin of 6 epochs")):
         wall, rss = med[k]
+        walls = ", ".join(f"{r['wall']:.2f}" for r in runs[k])
         print(f"  {label:<30} {wall:7.2f} s  {n / wall:>10,.0f} points/s  peak {rss:7.0f} MB  "
-              f"{rss * 2**20 / n:6.0f} B/point   (runs: {', '.join(f'{r['wall']:.2f}' for r in runs[k])} s)")
+              f"{rss * 2**20 / n:6.0f} B/point   (runs: {walls} s)")
     print(f"  E6 / E1: wall {med[7][0] / med[2][0]:.2f}, peak RSS {med[7][1] / med[2][1]:.2f} (asked: <= 1.20 each)")
     print(f"  py4dgeo M3C2 of the same two clouds: {peer_seconds:.2f} s ({n / peer_seconds:,.0f} points/s); "
           f"the E1 append takes {med[2][0] / peer_seconds:.2f} x its time")

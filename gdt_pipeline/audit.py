@@ -1,10 +1,12 @@
 """Reproducible epoch audits: re-run a twin's epochs from their recorded provenance and prove they match.
 
-For each epoch up to the one audited, the provenance in its layer names the inputs (path relative to the workflow
-folder, sha256, reader, units), the seed, and every stage with its plugin, versions and resolved parameters. The
-audit checks every input still has its recorded sha256, rebuilds the run plan from the record alone (the workflow
-file is not needed and may have changed since), re-runs it into a scratch twin, and compares every element set of
-every epoch with the stored layers: geometry, uncertainty, scores, states, visibility, source epochs.
+For each epoch audited (all of them, or one: ``--epoch``), the provenance in its layer names the inputs (path
+relative to the workflow folder, sha256, reader, units), the seed, and every stage with its plugin, versions and
+resolved parameters. The audit checks every input still has its recorded sha256, rebuilds the run plan from the
+record alone (the workflow file is not needed and may have changed since), re-runs it into a scratch twin, and
+compares every element set of every epoch with the stored layers: geometry, uncertainty, scores, states, visibility,
+source epochs. One epoch is re-run from the twin's own composite before it (the scratch twin starts as the stored
+layers up to there), so only its own inputs are needed.
 
 What is bit-exact: everything, on the same package versions and CPU architecture (the built-in stages use no
 thread-count-dependent reductions: cKDTree queries, Open3D closest-point and ray queries, batched 3x3 linear

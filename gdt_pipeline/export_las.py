@@ -1,8 +1,9 @@
 """LAS/LAZ 1.4 export of the twin's point sets for CloudCompare and GIS tools: one file per point set, its visible
 points (the composite at the epoch, or the part the epoch supplied: the scope of ``export_twin``), colours by change
-state, and the per-point values as named extra dimensions (``change_state``, ``change_score``, ``p_value``,
-``uncertainty``, ``source_epoch``, ``fusion_reason``, ``fusion_ratio``; the table in ``export_values``, shared with
-the PLY export) that CloudCompare shows as scalar fields.
+state, the scan's own ASPRS classes where the twin kept them, and the per-point values as named extra dimensions
+(``change_state``, ``change_score``, ``p_value``, ``uncertainty``, ``source_epoch``, ``fusion_reason``,
+``fusion_ratio``; the table in ``export_values``, shared with the PLY export) that CloudCompare shows as scalar
+fields.
 
 Coordinates are stored as integers of 0.1 mm (in the twin's units: 1e-4 for metres, 0.1 for millimetres) from an
 offset at the set's lower corner, so georeferenced clouds keep their precision.
@@ -39,6 +40,8 @@ def write_las(es: ElementSet, path: Path, meters_per_unit: float) -> Path:
     las.red, las.green, las.blue = (rgb[:, k].astype(np.uint16) for k in range(3))
     for name, values in element_values(es, vis).items():
         setattr(las, name, values)
+    if es.classification is not None:  # the scan file's own ASPRS classes go back where LAS tools look for them
+        las.classification = np.asarray(es.classification, np.uint8)[vis]
     with written_in_place(path) as tmp:
         las.write(str(tmp))
     return path

@@ -88,5 +88,8 @@ def item_from_set(es: ElementSet, roles: dict[str, str]) -> CompositeItem:
 
 
 def stored_composite(store: TwinStore, epoch_id: str, roles: dict[str, str]) -> Composite:
-    """The composite at ``epoch_id`` as the twin stores it, read set by set (``roles``: each epoch's role)."""
-    return Composite(tuple(item_from_set(es, roles) for es in store.iter_epoch(epoch_id)))
+    """The composite at ``epoch_id`` as the twin stores it, read set by set (``roles``: each epoch's role); the
+    retired sets (no element visible) only by name and removed count, so that an append's cost follows what is
+    still shown, not the history."""
+    items = tuple(item_from_set(es, roles) for es in store.iter_epoch(epoch_id, retired=False))
+    return Composite(items, retired=tuple(sorted(store.retired_removed(epoch_id).items())))

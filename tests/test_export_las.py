@@ -40,3 +40,29 @@ def test_las_export_carries_every_value_of_the_twin(tmp_path: Path, registry: ob
         assert np.all(np.isnan(las.p_value)) == (es.p_value is None)
         colour = np.round(STATE_COLORS[es.state[vis]] * 65535).astype(np.uint16)
         assert np.array_equal(np.column_stack([las.red, las.green, las.blue]), colour)
+
+
+def test_a_scans_las_classes_stay_in_the_twin_the_next_epoch_and_the_export(tmp_path: Path, registry) -> None:
+    from gdt_pipeline.twin_reference import stored_composite
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(0, 10, (2000, 3))
+    header = laspy.LasHeader(point_format=3, version="1.4")
+    header.scales, header.offsets = np.full(3, 1e-4), np.zeros(3)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    classes = rng.choice(np.array([2, 5, 6], np.uint8), len(pts))
+    las.classification = classes
+    las.write(str(tmp_path / "scan.las"))
+    (tmp_path / "wf.yaml").write_text(
+        "name: classes\ntwin: twin\nepochs:\n  - id: E0\n    role: as-is\n    inputs:\n"
+        "      - {path: scan.las, name: als, with: {attributes: [classification]}}\n"
+        "stages:\n  - uses: constant\n    with: {model: isotropic, sigma: 0.01}\n  - uses: keep_unchanged\n")
+    twin = run_workflow(tmp_path / "wf.yaml", registry=registry).twin
+    store = TwinStore.open(twin)
+    [es] = store.read_epoch("E0")
+    assert np.array_equal(es.classification, classes)
+    [item] = stored_composite(store, "E0", {"E0": "as-is"}).items  # what the next epoch is handed
+    assert np.array_equal(item.dataset.fields["classification"], classes) and item.dataset.role == "as-is"
+    assert run_gdt("export", str(twin), "--format", "las", "-o", str(tmp_path / "out")).returncode == 0
+    assert np.array_equal(laspy.read(str(tmp_path / "out" / "E0_als.las")).classification, classes)

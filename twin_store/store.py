@@ -233,10 +233,11 @@ class TwinStore:
         known = {c.GetName(): c for c in twin.GetChildren()} if twin else {}
         if not twin:
             UsdGeom.Xform.Define(stage, TWIN_PRIM)
-        missing = sorted(set(known) - {e.key for e in elements})
+        missing = sorted(k for k in set(known) - {e.key for e in elements} if not _retired(known[k]))
         if missing:
             raise TwinStoreError(f"epoch {epoch_id}: element sets {missing} of earlier epochs are missing; removal is "
-                                 f"expressed by state and visibility, never by dropping a set")
+                                 f"expressed by state and visibility, never by dropping a set (only a set with no "
+                                 f"visible element may be left out: it stays as it was)")
         written = []
         for es in elements:
             if es.key in known:
@@ -265,15 +266,30 @@ class TwinStore:
         ``keys`` when given."""
         return list(self.iter_epoch(epoch_id, keys))
 
-    def iter_epoch(self, epoch_id: str, keys: Iterable[str] | None = None) -> Iterator[ElementSet]:
+    def iter_epoch(self, epoch_id: str, keys: Iterable[str] | None = None, *, retired: bool = True
+                   ) -> Iterator[ElementSet]:
         """The sets of the composite at ``epoch_id`` one at a time (payload sets too), so that a reader holds one
-        set's arrays beside what it made of the others; only the sets named in ``keys`` when given."""
+        set's arrays beside what it made of the others; only the sets named in ``keys`` when given; without the
+        retired sets (no element visible, see ``retired_removed``) when ``retired`` is False."""
         stage = self._stage_upto(self._epochs_upto(epoch_id))
         twin = stage.GetPrimAtPath(TWIN_PRIM)
         wanted = None if keys is None else set(keys)
         for child in twin.GetChildren() if twin else []:
-            if wanted is None or child.GetName() in wanted:
+            if (wanted is None or child.GetName() in wanted) and (retired or not _retired(child)):
                 yield read_element_set(child)
+
+    def retired_removed(self, epoch_id: str) -> dict[str, int]:
+        """Per retired set at ``epoch_id`` (one whose elements are all hidden: it never changes again, and later
+        epochs are not handed it) how many of its elements left as removed; only their states are read."""
+        stage = self._stage_upto(self._epochs_upto(epoch_id))
+        twin = stage.GetPrimAtPath(TWIN_PRIM)
+        removed = STATE_NAMES.index("removed")
+        out = {}
+        for child in twin.GetChildren() if twin else []:
+            if _retired(child):
+                states = UsdGeom.PrimvarsAPI(child).GetPrimvar("gdt:changeState").Get()
+                out[child.GetName()] = int(np.count_nonzero(np.asarray(states) == removed))
+        return out
 
     def branch(self, target: str | Path, epochs: Sequence[str]) -> tuple[TwinStore, int]:
         """A new twin folder at ``target`` holding this twin's oldest ``epochs``, each layer verified and then hard
@@ -368,3 +384,9 @@ class TwinStore:
                 raise TwinStoreError(f"could not write {out}")
             os.replace(partial, out)
         return out
+
+
+def _retired(prim: Usd.Prim) -> bool:
+    """Whether a set has no visible element (the whole prim is invisible): a hidden element never comes back, so
+    such a set keeps its values for good and a later epoch need not restate it."""
+    return UsdGeom.Imageable(prim).GetVisibilityAttr().Get() == UsdGeom.Tokens.invisible

@@ -224,7 +224,8 @@ def calibrate(reference: Path, scans: tuple[Path, ...], units: str, max_distance
 
 @click.command()
 @click.argument("twin", type=click.Path(path_type=Path))
-@click.option("--epoch", help="Audit the epochs up to this one (default: all).")
+@click.option("--epoch", help="Re-run only this epoch, from the twin's composite before it and its own inputs "
+                              "(default: every epoch from the first).")
 @click.option("--strict", is_flag=True, help="A plugin version that differs from the recorded one is an error.")
 @click.option("--inputs-dir", type=click.Path(path_type=Path),
               help="Folder the recorded input paths are relative to, when the data has moved.")

@@ -37,7 +37,6 @@ from ..plugins import NullProgress, Progress, Registry, StageContext, StageSpec,
 from ..provenance import (
     EpochProvenance,
     EpochRecord,
-    InputRecord,
     StageRecord,
     WorkflowRecord,
     cache_key,
@@ -46,12 +45,12 @@ from ..provenance import (
 from ..tiling.grid import extent
 from ..twin_elements import composite_to_elements
 from ..twin_reference import stored_composite
-from ..types import Composite, Dataset, EpochInfo, Registration
+from ..types import Composite, Dataset, EpochInfo
 from ..workflow import load_workflow
 from .history import Start, start_on
 from .inputs import input_digests, read_input, relative_to_workflow
-from .plan import EpochPlan, InputPlan, RunPlan, StagePlan, plan_from_workflow
-from .run_record import add_epoch, start_record
+from .plan import EpochPlan, RunPlan, StagePlan, plan_from_workflow
+from .run_record import add_epoch, input_record, plain, registration_record, start_record
 from .stage_call import run_stage, stage_rng, stage_survey
 from .staging import check_overwritable, recover, staging_path, swap_into_place, write_json_atomic
 from .tiled import TileSession, TilingOptions, chain_runs, run_tiles, tileable
@@ -271,11 +270,20 @@ def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, 
     prov = EpochProvenance(
         gdt_pipeline=run.packages.get("gdt-pipeline", "?"), workflow=run.workflow,
         epoch=EpochRecord(epoch.id, epoch.index, epoch.role), seed=plan.seed,
-        inputs=[_input_record(parts, poses, inp) for (parts, poses), inp in zip(read, epoch.inputs, strict=True)],
-        stages=records, registration=_registration_record(slots.get("registration")), packages=run.packages,
+        inputs=[input_record(parts, poses, inp) for (parts, poses), inp in zip(read, epoch.inputs, strict=True)],
+        stages=records, registration=registration_record(slots.get("registration")), packages=run.packages,
         python=platform.python_version(), started=started, finished=datetime.now(UTC).isoformat(timespec="seconds"),
-        counts=slots["composite"].counts(), epoch_key=upstream[-1] if upstream else None)
+        counts=_kept_retired(slots, composite).counts(), epoch_key=upstream[-1] if upstream else None)
     return prov, slots
+
+
+def _kept_retired(slots: dict[str, Any], reference: Composite | None) -> Composite:
+    """The epoch's composite with the retired sets of its reference (the twin keeps them; the stages never saw
+    them), so that its counts are the whole twin's."""
+    if reference is None or not reference.retired:
+        return slots["composite"]
+    slots["composite"] = dataclasses.replace(slots["composite"], retired=reference.retired)
+    return slots["composite"]
 
 
 def _drop_unread(slots: dict[str, Any], later: list[list[StagePlan]]) -> None:
@@ -336,7 +344,7 @@ def _stage_record(run: _RunContext, epoch: EpochPlan, stage: StagePlan, digests:
                        plugin=spec.plugin, plugin_version=spec.plugin_version, entry_point=spec.entry_point,
                        params=params, seed_spawn_key=[epoch.index, s_index], seed=seed,
                        requires=list(spec.requires), provides=list(spec.provides), cache_key=key,
-                       seconds=round(seconds, 4), report=json.loads(json.dumps(report, default=_plain)))
+                       seconds=round(seconds, 4), report=json.loads(json.dumps(report, default=plain)))
 
 
 def _write_epoch(store: TwinStore, prov: EpochProvenance, slots: dict[str, Any], target: Path, seconds: float
@@ -356,34 +364,3 @@ def _frame_origin(recent: list[Dataset]) -> tuple[float, float, float] | None:
     lower, upper = extent([ds.points for ds in recent])
     centre = (lower + upper) / 2
     return (float(np.round(centre[0], 3)), float(np.round(centre[1], 3)), float(np.round(centre[2], 3)))
-
-
-def _input_record(parts: list[Dataset], poses: list[dict[str, Any]], inp: InputPlan) -> InputRecord:
-    """The provenance of one input: the file, the reader, and per dataset it gave its name, size, identity and the
-    station it was given (with where that came from)."""
-    src = parts[0].source
-    assert src is not None
-    datasets = [{"name": ds.name, "kind": ds.kind, "elements": ds.n_elements, **({"meta": ds.meta} if ds.meta else {}),
-                 **pose} for ds, pose in zip(parts, poses, strict=True)]
-    kinds = {ds.kind for ds in parts}
-    return InputRecord(path=src.path, sha256=src.sha256, name=inp.name, kind=kinds.pop() if len(kinds) == 1
-                       else "mixed", kind_hint=inp.kind, reader=src.reader, units=src.units, scale=src.scale,
-                       viewpoints=inp.viewpoints, elements=sum(ds.n_elements for ds in parts), notes=dict(src.notes),
-                       datasets=datasets, params=inp.params)
-
-
-def _plain(value: Any) -> Any:
-    """JSON form of numpy scalars and arrays in stage reports."""
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
-
-
-def _registration_record(reg: Registration | None) -> dict[str, Any] | None:
-    if reg is None:
-        return None
-    return {"method": reg.method, "transform": reg.transform.tolist(), "fitness": reg.fitness, "rmse": reg.rmse,
-            "covariance": None if reg.covariance is None else reg.covariance.tolist(),
-            "covariance_center": reg.center.tolist()}

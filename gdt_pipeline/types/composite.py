@@ -58,14 +58,18 @@ class CompositeItem:
 @dataclass(frozen=True)
 class Composite:
     """The composite 3D image after an epoch: every item the twin holds, visible or hidden, and the segments of
-    what this epoch changed."""
+    what this epoch changed. ``retired`` names the sets the twin keeps that have no visible element left (a hidden
+    element never comes back, so they never change again and are not handed to later epochs), each with how many of
+    its elements left as removed."""
 
     items: tuple[CompositeItem, ...] = ()
     segments: tuple[Segment, ...] = ()
+    retired: tuple[tuple[str, int], ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "items", tuple(self.items))
         object.__setattr__(self, "segments", tuple(self.segments))
+        object.__setattr__(self, "retired", tuple(self.retired))
         keys = [it.key for it in self.items]
         if len(set(keys)) != len(keys):
             raise ValueError(f"composite has duplicate item keys: {sorted(k for k in set(keys) if keys.count(k) > 1)}")
@@ -80,6 +84,7 @@ class Composite:
                 out[s.name.lower()] += int(codes[s])
             # removed elements leave the composite (hidden) but are what an epoch reports
             out["removed"] += int(np.sum((it.state == ChangeState.REMOVED) & ~it.visible))
+        out["removed"] += sum(n for _, n in self.retired)
         return out
 
 

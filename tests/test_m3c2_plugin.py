@@ -81,7 +81,12 @@ def test_m3c2_in_a_workflow_equals_py4dgeo(cube_scene: CubeScene, registry) -> N
     p_value = np.asarray(primvars.GetPrimvar("gdt:pValue").Get(), dtype=np.float64)
     state = np.asarray(primvars.GetPrimvar("gdt:changeState").Get())
 
-    distance, lod = _direct(_read(cube_scene.dir / "before.ply"), _read(cube_scene.scan))
+    # the reference is the twin's E0 as it stores it (float32 about the set's origin): what E1 was handed
+    from twin_store import TwinStore
+
+    [stored] = TwinStore.open(twin).read_epoch("E0")
+    assert np.max(np.abs(stored.points - _read(cube_scene.dir / "before.ply"))) < 1e-7
+    distance, lod = _direct(stored.points, _read(cube_scene.scan))
     want = np.abs(distance) / lod
     assert np.array_equal(np.isnan(score), np.isnan(want))
     np.testing.assert_allclose(score, want, rtol=1e-6, equal_nan=True)  # the twin stores float32

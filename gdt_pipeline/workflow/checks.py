@@ -160,7 +160,7 @@ def reference_problems(data: dict, registry: Registry, problems: Problems, base:
     for e_index, epoch in enumerate(epochs):
         inputs = [(i, inp) for i, inp in enumerate(listed(epoch.get("inputs"))) if isinstance(inp, dict)]
         for i_index, inp in inputs:
-            if epoch.get("id") in held and not _exists(base, inp.get("path")):
+            if str(epoch.get("id")) in held and not _exists(base, inp.get("path")):
                 continue
             input_problems(inp, ("epochs", e_index, "inputs", i_index), registry, problems, base)
         names = [str(inp.get("name") or Path(str(inp.get("path", ""))).stem) for _, inp in inputs]

@@ -17,22 +17,13 @@ from .types import (
     GaussianUncertainty,
     MixtureUncertainty,
 )
+from .types.arrays import covariance33
 from .types.uncertainty import Uncertainty
-
-_UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 
 
 def _shared(rows: np.ndarray) -> np.ndarray:
     """One row when every element has the same one (a tolerance given once), so the model stays shared and small."""
     return rows[:1] if len(rows) > 1 and bool(np.all(rows == rows[:1])) else rows
-
-
-def _unpacked(cov6: np.ndarray) -> np.ndarray:
-    """``(N,6)`` packed covariances (xx xy xz yy yz zz) as symmetric ``(N,3,3)`` float64 matrices."""
-    cov = np.empty((len(cov6), 3, 3))
-    cov[:, _UPPER[0], _UPPER[1]] = cov6
-    cov[:, _UPPER[1], _UPPER[0]] = cov6
-    return cov
 
 
 def stored_uncertainty(es: ElementSet) -> Uncertainty | None:
@@ -45,7 +36,7 @@ def stored_uncertainty(es: ElementSet) -> Uncertainty | None:
         rotation = None if es.rotation is None else _shared(np.asarray(es.rotation, np.float64))
         return BoxUncertainty(_shared(np.asarray(es.half_widths, np.float64)), rotation)
     assert es.covariance is not None
-    cov = _unpacked(_shared(np.asarray(es.covariance, np.float64)))
+    cov = covariance33(_shared(np.asarray(es.covariance, np.float64)))
     if es.uncertainty_model == "mixture":
         k = len(cov)
         return MixtureUncertainty(np.ones((k, 1)), np.zeros((k, 1, 3)), cov[:, None])

@@ -33,3 +33,11 @@ _UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 def covariance6(cov: np.ndarray) -> np.ndarray:
     """``(N,3,3)`` symmetric matrices packed as ``(N,6)`` in the twin's order xx xy xz yy yz zz."""
     return cov[:, _UPPER[0], _UPPER[1]]
+
+
+def covariance33(cov6: np.ndarray) -> np.ndarray:
+    """The inverse of ``covariance6``: ``(N,6)`` packed rows as symmetric ``(N,3,3)`` float64 matrices."""
+    cov = np.empty((len(cov6), 3, 3))
+    cov[:, _UPPER[0], _UPPER[1]] = cov6
+    cov[:, _UPPER[1], _UPPER[0]] = cov6
+    return cov

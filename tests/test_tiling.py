@@ -149,6 +149,32 @@ def test_shortfall_measures_the_missing_halo() -> None:
     assert bounds.shortfall(pos, 0.3) == pytest.approx(0.15)
 
 
+@pytest.mark.parametrize("halo", [0.0, 0.02, 0.05, 0.2])
+def test_dense_cells_prove_the_same_shortfall_as_a_full_search(halo: float) -> None:
+    """The k-nearest shortfall from the cell proof plus a search of the rest equals a search of every point, on a
+    clustered cloud (dense patches and sparse strays) whatever the halo."""
+    from gdt_pipeline.geometry import knn_reach
+    from gdt_pipeline.plugins import StageContext
+
+    rng = np.random.default_rng(7)
+    dense = rng.normal(0.5, 0.05, size=(20_000, 3))
+    sparse = rng.uniform(-halo, 1 + halo, size=(300, 3))
+    pts = np.vstack([dense, sparse])
+    bounds = TileBounds(np.zeros(3), np.ones(3), np.full(3, -halo), np.full(3, 1 + halo))
+    inside = np.all((pts >= bounds.lower) & (pts <= bounds.upper), axis=1)
+    pts = pts[inside]
+    full = bounds.shortfall(pts, knn_reach(pts, 20))
+    ctx = StageContext(stage=None, params=None, slots={}, epoch=None, rng=None, seed=0, log=None,  # type: ignore
+                       tile=bounds)
+    ctx.k_nearest(pts, 20)
+    assert ctx.shortfalls == [pytest.approx(full, abs=0)]
+    proven = bounds.proven_knn(pts, 20)
+    if halo >= 0.05:
+        assert proven.mean() > 0.5  # most of a dense patch needs no second search
+    core = np.all((pts >= 0) & (pts <= 1), axis=1)
+    assert np.all(knn_reach(pts, 20)[proven & core] <= halo + 1e-12)
+
+
 def _plan(registry: object, names: list[str]) -> list[StagePlan]:
     return [StagePlan(i, registry.get(n), registry.get(n).params.model_validate(
         {"tau": 1.0} if n == "fixed" else {"profile": "structured_light"} if n == "sensor_model" else {}))
@@ -207,3 +233,53 @@ def test_facet_samples_do_not_depend_on_the_other_facets() -> None:
     assert np.all(u >= -1e-9) and np.all(v >= -1e-9) and np.all(u + v <= 1 + 1e-9)
     assert kstest(1 - (1 - u) ** 2, "uniform").pvalue > 0.01  # u has density 2(1 - u) on a uniform triangle
     assert query_samples(mesh, 12, 50.0, 64)[0][0].tolist() != pos[0].tolist()  # the seed matters
+
+
+def test_a_tile_takes_the_reach_of_the_elements_near_it() -> None:
+    """Per-element reaches: a tile far from the one wide-reaching element keeps a narrow halo; a tile near it (within
+    the widest reach) takes the wide one."""
+    from gdt_pipeline.runner.halos import StageReach, tile_reaches
+
+    pos = np.column_stack([np.linspace(0.05, 9.95, 100), np.full(100, 0.5), np.full(100, 0.5)])
+    reach = np.full(100, 0.01)
+    reach[0] = 0.4  # one grazing point at x = 0.05
+    grid = grid_for([pos], 1.0)
+    index = [CellIndex(grid, pos)]
+    reaches = [StageReach(0.4, (reach,))]
+    near = tile_reaches(reaches, *grid.bounds(int(grid.cell(pos[:1])[0])), index)
+    far = tile_reaches(reaches, *grid.bounds(int(grid.cell(pos[-1:])[0])), index)
+    assert near == [0.4] and far == [0.01]
+    shared = tile_reaches([StageReach(0.4, (None,))], *grid.bounds(int(grid.cell(pos[-1:])[0])), index)
+    assert shared == [0.4]
+
+
+@pytest.mark.parametrize("mixed", [False, True])
+def test_uncertainty_merged_as_tiles_finish_equals_the_concatenation(mixed: bool) -> None:
+    """Covariances written into place tile by tile are the concatenation put in element order, also when one tile's
+    model (a shared row) cannot be written into place."""
+    from gdt_pipeline.tiling.merge import RecentSink, UncertaintyPiece, merge_recent
+
+    rng = np.random.default_rng(3)
+    n = 50
+    a = rng.normal(size=(n, 3, 3))
+    cov = a @ np.swapaxes(a, 1, 2) + np.eye(3)
+    ds = Dataset(name="s", role="as-is", points=rng.normal(size=(n, 3)))
+    members = [np.sort(rng.permutation(n)[:20]), None, None]
+    rest = np.setdiff1d(np.arange(n), members[0])
+    members[1], members[2] = rest[:10], rest[10:]
+    pieces = [UncertaintyPiece(GaussianUncertainty(cov[m], dof=4.0), len(m)) for m in members]
+    if mixed:
+        cov[members[2]] = np.eye(3) * 2.0
+        pieces[2] = UncertaintyPiece(GaussianUncertainty(np.eye(3)[None] * 2.0, dof=4.0), len(members[2]))
+    order = ElementOrder.check("s", members, n)
+    want = merge_recent(ds, pieces, order)
+    sink = RecentSink([n])
+    held = []
+    for piece, m in zip(pieces, members, strict=True):
+        one = [piece]
+        sink.absorb(one, [m])
+        held.append(one[0])
+    assert (held[2] is not None) == mixed and held[0] is None
+    got = sink.merged(ds, 0, held, members, order)
+    assert np.array_equal(got.uncertainty.cov, want.uncertainty.cov) and np.array_equal(got.uncertainty.cov, cov)
+    assert got.uncertainty.dof == 4.0

@@ -18,6 +18,7 @@ from gdt_pipeline.region_of_view.depth import (
 )
 from gdt_pipeline.region_of_view.window_kernel import window_sides
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
+from gdt_pipeline.types.arrays import covariance6
 
 EYE = np.zeros(3)
 K = 3.0
@@ -101,7 +102,7 @@ def _ray_meets_facet(p: np.ndarray, tri: np.ndarray, margin: float) -> bool:
 def test_window_kernel_matches_the_reference() -> None:
     pts, cov = _scan()
     station = Station(eye=EYE, contains=lambda p: np.ones(len(p), bool), datasets=(0,), free_range=0.0)
-    img = build_image(station, pts, cov, 1.0)
+    img = build_image(station, pts, covariance6(cov), 1.0)
     rng = np.random.default_rng(9)
     tris = _facets(rng)
     pos = tris.mean(axis=1)

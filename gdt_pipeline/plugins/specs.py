@@ -25,7 +25,7 @@ import pluggy
 from pydantic import BaseModel
 
 from ..errors import PluginError
-from ..geometry.normals import knn_reach
+from ..geometry.normals import knn_reach, within_dense_cells
 from ..types import Dataset, EpochInfo
 
 PROJECT = "gdt_pipeline"
@@ -84,6 +84,19 @@ class TileBounds:
         room = np.minimum((pos[core] - self.lower).min(axis=1), (self.upper - pos[core]).min(axis=1))
         return float(max(0.0, np.max(r - room)))
 
+    def proven_knn(self, points: np.ndarray, k: int) -> np.ndarray:
+        """Per point, whether its ``k``-nearest neighbourhood provably lies inside the halo without a search: a core
+        point in a grid cube holding k points, the cube's diagonal no longer than every core point's room to the
+        halo's edge (outside the core nothing needs proving)."""
+        pos = np.asarray(points, dtype=np.float64)
+        core = np.all((pos >= self.core_lower) & (pos <= self.core_upper), axis=1)
+        if not core.any():
+            return np.ones(len(pos), dtype=bool)
+        room = np.minimum((pos[core] - self.lower).min(axis=1), (self.upper - pos[core]).min(axis=1))
+        # shrunk a hair so that rounding in the cell arithmetic cannot put a neighbour beyond the room
+        proven = within_dense_cells(pos, k, float(room.min()) * (1 - 1e-9) / np.sqrt(3.0), self.lower)
+        return proven | ~core
+
 
 @dataclass(frozen=True)
 class StageContext:
@@ -116,8 +129,10 @@ class StageContext:
     def k_nearest(self, points: np.ndarray, k: int) -> None:
         """Declare that the result at each of ``points`` used its ``k`` nearest points (PCA normals): in a tile, how
         far each neighbourhood reached is searched and declared as ``neighbourhoods``; elsewhere nothing happens."""
-        if self.tile is not None:
-            self.neighbourhoods(points, knn_reach(points, k))
+        if self.tile is None:
+            return
+        unsure = ~self.tile.proven_knn(points, k)
+        self.neighbourhoods(points[unsure], knn_reach(points, k, unsure))
 
     def __getitem__(self, name: str) -> Any:
         """The value of a required slot."""
@@ -133,6 +148,10 @@ class StageContext:
         return self.slots.get(name, default)
 
 
+# A stage's reach: one distance for the epoch, or per recent dataset one per element (``StageSpec``).
+ReachFn = Callable[[Any, Mapping[str, Any]], "float | Sequence[np.ndarray]"]
+
+
 @dataclass(frozen=True)
 class StageSpec:
     """A stage as a plugin declares it.
@@ -145,12 +164,14 @@ class StageSpec:
 
     Tiling (``docs/scale.md``): a stage with ``tiling="tile"`` promises that its output for a recent element depends
     only on data within ``reach(params, slots)`` of that element (0 when ``reach`` is None), so the runner may run it
-    on one 3-D tile plus a halo at a time and keep the core. Such a stage provides only ``recent`` (uncertainty
-    attached, geometry untouched), ``correspondences``, ``scores`` or ``change``. ``survey(params, slots)`` gives the
-    whole-epoch figures a stage needs in every tile alike (a mean facet area): computed once on the epoch's slots,
-    whole run or tiled, and handed over as ``ctx.survey``. ``finish(ctx)``, when given, runs
-    once on the whole epoch's merged slots after a tiled run and returns slots to replace (e.g. a null simulator over
-    every pair); a stage whose output cannot travel between processes (closures) rebuilds it there.
+    on one 3-D tile plus a halo at a time and keep the core. ``reach`` returns one distance for the epoch, or one
+    array per recent dataset with each element's reach (what it would be if every element were like this one): a
+    tile's halo is then the largest over the elements near its core (``runner.halos``). Such a stage provides only
+    ``recent`` (uncertainty attached, geometry untouched), ``correspondences``, ``scores`` or ``change``.
+    ``survey(params, slots)`` gives the whole-epoch figures a stage needs in every tile alike (a mean facet area):
+    computed once on the epoch's slots, whole run or tiled, and handed over as ``ctx.survey``. ``finish(ctx)``, when
+    given, runs once on the whole epoch's merged slots after a tiled run and returns slots to replace (e.g. a null
+    simulator over every pair); a stage whose output cannot travel between processes (closures) rebuilds it there.
     """
 
     name: str
@@ -165,7 +186,7 @@ class StageSpec:
     check: Callable[[frozenset[str]], str | None] | None = None
     validate: Callable[[Any, Path], Sequence[tuple[str, str]]] | None = None
     tiling: Literal["epoch", "tile"] = "epoch"
-    reach: Callable[[Any, Mapping[str, Any]], float] | None = None
+    reach: ReachFn | None = None
     survey: Callable[[Any, Mapping[str, Any]], Mapping[str, Any]] | None = None
     finish: Callable[[StageContext], Mapping[str, Any]] | None = None
     plugin: str = ""
@@ -192,7 +213,7 @@ def family_stage(family: Family, *, name: str, version: str, params: type[BaseMo
                  check: Callable[[frozenset[str]], str | None] | None = None,
                  validate: Callable[[Any, Path], Sequence[tuple[str, str]]] | None = None,
                  tiling: Literal["epoch", "tile"] = "epoch",
-                 reach: Callable[[Any, Mapping[str, Any]], float] | None = None,
+                 reach: ReachFn | None = None,
                  survey: Callable[[Any, Mapping[str, Any]], Mapping[str, Any]] | None = None,
                  finish: Callable[[StageContext], Mapping[str, Any]] | None = None) -> StageSpec:
     """A stage of ``family`` that reads and writes the family's usual slots (``FAMILY_SLOTS``; ``requires`` and

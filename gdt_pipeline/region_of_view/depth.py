@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..types.arrays import covariance6
 from .window_kernel import window_sides
 
 NONE, HIDDEN, THROUGH, PRESENT = 0, 1, 2, 3  # what the stations together say of a sample
@@ -107,18 +106,22 @@ def ray_pitch(az: np.ndarray, el: np.ndarray) -> float:
     return max(float(np.sqrt(covered / len(az))), nearest)
 
 
-def build_image(station: Station, pts: np.ndarray, cov: np.ndarray, pixel_scale: float) -> DepthImage | None:
-    """The station's depth image of its measured points with their (N,3,3) covariances (None without points)."""
+def build_image(station: Station, pts: np.ndarray, cov6: np.ndarray, pixel_scale: float) -> DepthImage | None:
+    """The station's depth image of its measured points with their covariances packed as (N,6) rows
+    (``covariance6``; None without points)."""
     if len(pts) < 2:
         return None
     frame = view_frame((pts - station.eye).mean(axis=0))
     az, el, _ = angles(frame, station.eye, pts)
     pixel = pixel_scale * ray_pitch(az, el)
     key = pixel_keys(az, el, pixel)
+    del az, el
     order = np.argsort(key, kind="stable")
     keys, starts, counts = np.unique(key[order], return_index=True, return_counts=True)
+    del key
     return DepthImage(eye=station.eye, frame=frame, pixel=pixel, keys=keys, starts=starts, counts=counts,
-                      points=pts[order], cov6=covariance6(cov[order]), free_range=station.free_range)
+                      points=pts[order], cov6=np.ascontiguousarray(cov6[order]), free_range=station.free_range)
+
 
 
 def window_votes(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndarray | None, k: float,

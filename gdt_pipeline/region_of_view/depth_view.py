@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from ..types import Composite, Dataset, ItemView, RegionOfView
+from ..types.arrays import covariance6
 from .contact import closed_parts, in_contact
 from .depth import HIDDEN, NONE, PRESENT, THROUGH, DepthImage, Station, build_image, window_votes
 from .occlusion import blocked_by_confirmed, confirmed_facets
@@ -45,10 +46,20 @@ def depth_images(stations: list[Station], recent: list[Dataset], pixel_scale: fl
     images = []
     for st in stations:
         parts = [station_points(recent[i]) for i in st.datasets]
-        pts = np.vstack([p for p, _ in parts]) if parts else np.zeros((0, 3))
-        covs = [c if c.ndim == 3 else np.broadcast_to(c, (len(p), 3, 3)) for p, c in parts]
-        images.append(build_image(st, pts, np.concatenate(covs) if covs else np.zeros((0, 3, 3)), pixel_scale))
+        if len(parts) == 1:  # a station's one scan is not copied before its image sorts it (72 B a point)
+            pts, cov6 = parts[0][0], _packed(*parts[0])
+        else:
+            pts = np.vstack([p for p, _ in parts]) if parts else np.zeros((0, 3))
+            cov6 = np.concatenate([_packed(p, c) for p, c in parts]) if parts else np.zeros((0, 6))
+        images.append(build_image(st, pts, cov6, pixel_scale))
     return images
+
+
+def _packed(pts: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Covariances packed as (N,6) rows, one per point (a shared (3,3) one broadcast, not copied)."""
+    if cov.ndim == 3:
+        return covariance6(cov)
+    return np.broadcast_to(covariance6(cov[None])[0], (len(pts), 6))
 
 
 @dataclass

@@ -150,9 +150,11 @@ def look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list[
     p = ctx.params
     recent: list[Dataset] = ctx["recent"]
     reference: Composite = ctx.get("reference") or Composite()
-    rpts = np.vstack([ds.element_positions() for ds in recent]) if recent else np.zeros((0, 3))
+    rpts = (recent[0].element_positions() if len(recent) == 1
+            else np.vstack([ds.element_positions() for ds in recent]) if recent else np.zeros((0, 3)))
     spacing = point_spacing(rpts)
     if p.sight == "depth":
+        del rpts  # not held while the depth images are (24 B a point of the epoch)
         return look_depth(ctx, rov, parts, stations, spacing)
     offset = p.offset or 3 * spacing
     match = p.match_distance or 3 * spacing

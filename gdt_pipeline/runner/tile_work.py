@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 
 from ..plugins import NullProgress, Registry, StageContext, TileBounds, load_registry
-from ..tiling.crop import IndexMap, take_candidates, take_change, take_dataset, take_scores
+from ..tiling.crop import IndexMap, take_candidates, take_change, take_scores
+from ..tiling.merge import UncertaintyPiece
 from ..types import EpochInfo
 from .stage_call import run_stage, stage_rng
 
@@ -123,7 +124,8 @@ def core_results(task: TileTask, slots: dict[str, Any]) -> dict[str, list[Any]]:
     """The provided slots restricted to the tile's core elements, in the epoch's numbering."""
     out: dict[str, list[Any]] = {}
     if "recent" in task.provides:
-        out["recent"] = [take_dataset(ds, core) for ds, core in zip(slots["recent"], task.core, strict=True)]
+        out["recent"] = [UncertaintyPiece(None if ds.uncertainty is None else ds.uncertainty.take(core), len(core))
+                         for ds, core in zip(slots["recent"], task.core, strict=True)]
     kept_at: dict[int, np.ndarray] = {}
     if "correspondences" in task.provides:
         ref_maps = [_indexer(keep) for keep in task.ref_keeps]

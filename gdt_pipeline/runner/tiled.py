@@ -33,7 +33,6 @@ from ..tiling import (
     lookup,
     merge_change,
     merge_correspondences,
-    merge_recent,
     merge_scores,
     size_for_budget,
     take_candidates,
@@ -41,7 +40,9 @@ from ..tiling import (
     tile_members,
 )
 from ..tiling.crop import take_change, take_scores
+from ..tiling.merge import RecentSink
 from ..types import Composite, CompositeItem, Dataset
+from .halos import StageReach, stage_reaches, tile_reaches
 from .plan import StagePlan, TilingOptions
 from .stage_call import stage_rng, stage_survey
 from .tile_work import TileResult, TileStage, TileTask, run_tile
@@ -123,24 +124,13 @@ class TileRunOutcome:
     reports: list[dict[str, Any]]
 
 
-def _reaches(stages: list[StagePlan], slots: dict[str, Any]) -> list[float]:
-    """Each stage's declared reach (0 without one)."""
-    out = []
-    for st in stages:
-        reach = 0.0 if st.spec.reach is None else float(st.spec.reach(st.params, slots))
-        if not np.isfinite(reach) or reach < 0:
-            raise GdtError(f"stage {st.spec.name!r} declared a reach of {reach}; it cannot run in tiles")
-        out.append(reach)
-    return out
-
-
 @dataclass
 class _Cutter:
     """Cuts an epoch's slots to one tile: the grid, each tile's core members and box indexes of the big sets."""
 
     slots: dict[str, Any]
     reads: set[str]
-    halo: float
+    reaches: list[StageReach]
     size: float
     surveys: dict[int, dict[str, Any]] = field(default_factory=dict)  # per stage index, its whole-epoch figures
 
@@ -150,6 +140,8 @@ class _Cutter:
         self.grid = grid_for(positions, self.size)
         self.members = tile_members(self.grid, positions)
         self.recent_index = [CellIndex(self.grid, p) for p in positions]
+        self.stage_reach = {t: tile_reaches(self.reaches, *self.grid.bounds(t), self.recent_index)
+                            for t in self.members}
         ref: Composite | None = self.slots.get("reference")
         # Meshes stay whole in every tile: where CAD surfaces touch (a part standing on the floor), Open3D resolves a
         # tie between them by its BVH's traversal, which depends on the facets it holds; a tile holding other facets
@@ -158,11 +150,20 @@ class _Cutter:
             CellIndex(self.grid, it.dataset.points).query if it.dataset.faces is None else _everything(it)
             for it in ref.items]
 
-    def task(self, tile: int, stages: list[StagePlan], seed: int, threads: int | None, halo: float | None = None,
-             later_reach: tuple[float, ...] = ()) -> TileTask:
-        """The task of tile ``tile`` (with a wider ``halo`` than the run's when a first try fell short)."""
+    def halo(self, tile: int) -> float:
+        """The halo tile ``tile`` needs: the sum of its stages' reaches (each needs the previous one's results)."""
+        return float(sum(self.stage_reach[tile]))
+
+    def later_reach(self, tile: int) -> tuple[float, ...]:
+        """Per stage, how far around the core its results must hold in tile ``tile``: the later stages' reach."""
+        reach = self.stage_reach[tile]
+        return tuple(float(sum(reach[k + 1:])) for k in range(len(reach)))
+
+    def task(self, tile: int, stages: list[StagePlan], seed: int, threads: int | None, halo: float | None = None
+             ) -> TileTask:
+        """The task of tile ``tile`` (with a wider ``halo`` than its own when a first try fell short)."""
         lo, hi = self.grid.bounds(tile)
-        halo = self.halo if halo is None else halo
+        halo = self.halo(tile) if halo is None else halo
         blo, bhi = lo - halo, hi + halo
         recent: list[Dataset] = self.slots["recent"]
         ids = [index.query(blo, bhi) for index in self.recent_index]
@@ -185,7 +186,7 @@ class _Cutter:
             for st in stages),
             slots=cut, recent_ids=ids, core=core, n_elements=[ds.n_elements for ds in recent], ref_keeps=keeps,
             provides=provides, candidate_ids=candidate_ids, threads=threads,
-            bounds=TileBounds(lo, hi, blo, bhi), later_reach=later_reach)
+            bounds=TileBounds(lo, hi, blo, bhi), later_reach=self.later_reach(tile))
 
     def _cut_correspondences(self, cut: dict[str, Any], ids: list[np.ndarray]
                              ) -> tuple[list[np.ndarray] | None, dict[int, np.ndarray]]:
@@ -225,16 +226,16 @@ def _finish_correspondences(task: TileTask) -> TileTask:
 
 
 def _merge(slots: dict[str, Any], members: dict[int, list[np.ndarray]], results: list[TileResult],
-           provides: set[str]) -> dict[str, Any]:
-    """The tiles' core results merged into whole-epoch slots."""
+           provides: set[str], sink: RecentSink) -> dict[str, Any]:
+    """The tiles' core results merged into whole-epoch slots (``sink``: the uncertainty merged as tiles finished)."""
     recent: list[Dataset] = slots["recent"]
     tiles = [r.tile for r in results]
     orders = [ElementOrder.check(ds.name, [members[t][d] for t in tiles], ds.n_elements)
               for d, ds in enumerate(recent)]
     out: dict[str, Any] = {}
     if "recent" in provides:
-        out["recent"] = [merge_recent(ds, [r.slots["recent"][d] for r in results], orders[d])
-                         for d, ds in enumerate(recent)]
+        out["recent"] = [sink.merged(ds, d, [r.slots["recent"][d] for r in results], [members[t][d] for t in tiles],
+                                     orders[d]) for d, ds in enumerate(recent)]
     maps: dict[int, list[np.ndarray]] = {}
     if "correspondences" in provides:
         merged = []
@@ -254,8 +255,7 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
               progress_task: Callable[[int], contextlib.AbstractContextManager[Callable[[], None]]]) -> TileRunOutcome:
     """Run ``stages`` tile by tile on ``slots`` (updated in place with the merged results)."""
     reads = {s for st in stages for s in (*st.spec.requires, *st.spec.optional)}
-    reaches = _reaches(stages, slots)
-    later = tuple(float(sum(reaches[k + 1:])) for k in range(len(stages)))
+    reaches = stage_reaches(stages, slots)
     epoch_id = slots["epoch"].id
     if epoch_id not in session.sizes:  # one size per epoch: its data decide it when a budget is given
         positions = [ds.element_positions() for ds in slots["recent"]]
@@ -263,36 +263,44 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
             positions, int(session.options.max_elements or 1))
     surveys = {st.index: stage_survey(st.spec, st.params, slots, f"stage {st.index} {st.spec.name!r}")
                for st in stages if st.spec.survey is not None}
-    cutter = _Cutter(slots, reads, float(sum(reaches)), session.sizes[epoch_id], surveys)
+    cutter = _Cutter(slots, reads, reaches, session.sizes[epoch_id], surveys)
     executor, fn = session.executor()
     threads = session.worker_threads()
-    log.info("tiles: %d of %.4g with halo %.4g for %s", len(cutter.members), cutter.size, cutter.halo,
-             ", ".join(st.spec.name for st in stages))
-    with progress_task(len(cutter.members)) as advance:
-        results = _run_rounds(cutter, list(cutter.members), executor, fn, stages, seed, threads, later, advance)
-    ordered = [results[t] for t in cutter.members]
+    halos = [cutter.halo(t) for t in cutter.members]
+    log.info("tiles: %d of %.4g with halos of %.4g to %.4g for %s", len(cutter.members), cutter.size,
+             min(halos, default=0.0), max(halos, default=0.0), ", ".join(st.spec.name for st in stages))
     provides = {s for st in stages for s in st.spec.provides}
-    slots.update(_merge(slots, cutter.members, ordered, provides))
+    sink = RecentSink([ds.n_elements for ds in slots["recent"]])
+
+    def finished(result: TileResult) -> None:
+        if "recent" in provides:
+            sink.absorb(result.slots["recent"], cutter.members[result.tile])
+
+    with progress_task(len(cutter.members)) as advance:
+        results = _run_rounds(cutter, list(cutter.members), executor, fn, stages, seed, threads, advance, finished)
+    ordered = [results[t] for t in cutter.members]
+    slots.update(_merge(slots, cutter.members, ordered, provides, sink))
     _finish(stages, slots, seed)
-    widened = sum(1 for r in ordered if r.halo > cutter.halo)
+    widened = sum(1 for r in ordered if r.halo > cutter.halo(r.tile))
     return _outcome(stages, ordered, cutter, session, widened)
 
 
 def _run_rounds(cutter: _Cutter, tiles: list[int], executor: TileExecutor, fn: Callable[[TileTask], TileResult],
-                stages: list[StagePlan], seed: int, threads: int | None, later: tuple[float, ...],
-                advance: Callable[[], None]) -> dict[int, TileResult]:
+                stages: list[StagePlan], seed: int, threads: int | None, advance: Callable[[], None],
+                finished: Callable[[TileResult], None]) -> dict[int, TileResult]:
     """Every tile's result, with halos widened where a stage's neighbourhoods reached past them.
 
     The first tile runs alone: what it falls short by widens every other tile's halo before they start, so a stage
     with k-nearest neighbourhoods (which declares no reach) costs one extra tile, not a second pass over all."""
-    halos = dict.fromkeys(tiles, cutter.halo)
+    halos = {t: cutter.halo(t) for t in tiles}
     results: dict[int, TileResult] = {}
 
     def run(todo: list[int]) -> list[TileResult]:
-        tasks = (_finish_correspondences(cutter.task(t, stages, seed, threads, halos[t], later)) for t in todo)
+        tasks = (_finish_correspondences(cutter.task(t, stages, seed, threads, halos[t])) for t in todo)
 
         def done(i: int, result: TileResult) -> None:
             if result.shortfall == 0:
+                finished(result)
                 advance()
 
         out = executor.map(fn, tasks, done)
@@ -340,7 +348,9 @@ def _finish(stages: list[StagePlan], slots: dict[str, Any], seed: int) -> None:
 def _outcome(stages: list[StagePlan], results: list[TileResult], cutter: _Cutter, session: TileSession,
              widened: int) -> TileRunOutcome:
     seconds = [float(sum(r.seconds[k] for r in results)) for k in range(len(stages))]
-    tiling = {"tiles": len(cutter.members), "tile_size": cutter.size, "halo": cutter.halo,
+    halos = [r.halo for r in results]
+    tiling = {"tiles": len(cutter.members), "tile_size": cutter.size, "halo": max(halos, default=0.0),
+              "halo_median": float(np.median(halos)) if halos else 0.0,
               "tiles_with_wider_halo": widened,
               "executor": session.options.executor, "workers": session.options.workers}
     reports = []

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import GdtError
-from ..types import Change, Correspondences, Dataset, Scores, concat_uncertainty
+from ..types import Change, Correspondences, Dataset, GaussianUncertainty, Scores, Uncertainty, concat_uncertainty
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,54 @@ class ElementOrder:
         return cls(position)
 
 
-def merge_recent(ds: Dataset, pieces: Sequence[Dataset], order: ElementOrder) -> Dataset:
+@dataclass(frozen=True)
+class UncertaintyPiece:
+    """What a tile hands back of a recent dataset: the uncertainty its stages attached to its core elements (their
+    geometry is the epoch's, untouched, so it does not travel back)."""
+
+    uncertainty: Uncertainty | None
+    n_elements: int
+
+
+@dataclass
+class RecentSink:
+    """Per recent dataset, the tiles' per-element Gaussian covariances written into place as each tile finishes, so
+    that the run holds the merged rows and one tile's, not every tile's plus their concatenation (144 B a point)."""
+
+    sizes: Sequence[int]
+    cov: dict[int, np.ndarray] = field(default_factory=dict)
+    dof: dict[int, float | None] = field(default_factory=dict)
+
+    def absorb(self, pieces: list[UncertaintyPiece | None], members: Sequence[np.ndarray]) -> None:
+        """Write each piece that is a per-element Gaussian with the dataset's dof into place (``members[d]``: its
+        elements), and drop it from ``pieces``."""
+        for d, piece in enumerate(pieces):
+            u = None if piece is None else piece.uncertainty
+            if not isinstance(u, GaussianUncertainty) or u.rows != piece.n_elements or u.rows == 1:
+                continue
+            if d in self.dof and self.dof[d] != u.dof:
+                continue
+            if d not in self.cov:
+                self.cov[d], self.dof[d] = np.empty((self.sizes[d], 3, 3)), u.dof
+            self.cov[d][members[d]] = u.cov
+            pieces[d] = None
+
+    def merged(self, ds: Dataset, d: int, pieces: Sequence[UncertaintyPiece | None], members: Sequence[np.ndarray],
+               order: ElementOrder) -> Dataset:
+        """The dataset with the uncertainty the tiles attached to their core elements (``members[t]``: tile t's)."""
+        if d not in self.cov:
+            return merge_recent(ds, pieces, order)  # type: ignore[arg-type]
+        cov = self.cov.pop(d)
+        if any(p is not None for p in pieces):  # some tile's model was not absorbed: join them the general way
+            whole = GaussianUncertainty.trusted(cov, self.dof[d])  # rows of unabsorbed tiles are unset
+            full = [UncertaintyPiece(whole.take(m), len(m)) if p is None else p
+                    for p, m in zip(pieces, members, strict=True)]
+            return merge_recent(ds, full, order)
+        cov.setflags(write=False)
+        return dataclasses.replace(ds, uncertainty=GaussianUncertainty.trusted(cov, self.dof[d]))
+
+
+def merge_recent(ds: Dataset, pieces: Sequence[Dataset | UncertaintyPiece], order: ElementOrder) -> Dataset:
     """The dataset with the uncertainty the tiles attached to their core elements."""
     if any(p.uncertainty is None for p in pieces) or not pieces:
         return ds

@@ -67,12 +67,17 @@ class GaussianUncertainty:
         """The uncertainty of the elements ``idx`` (a shared covariance stays shared)."""
         if self.cov.shape[0] == 1:
             return self
-        # rows of validated covariances need no second check (the symmetry test costs as much as the copy)
-        out = object.__new__(GaussianUncertainty)
         cov = self.cov[idx]
         cov.setflags(write=False)
+        return GaussianUncertainty.trusted(cov, self.dof)
+
+    @classmethod
+    def trusted(cls, cov: np.ndarray, dof: float | None) -> GaussianUncertainty:
+        """A model of read-only (N,3,3) rows of covariances already validated (taken or merged from validated
+        models): the symmetry test costs as much as a copy."""
+        out = object.__new__(cls)
         object.__setattr__(out, "cov", cov)
-        object.__setattr__(out, "dof", self.dof)
+        object.__setattr__(out, "dof", dof)
         return out
 
     def repeated(self, n: int) -> GaussianUncertainty:

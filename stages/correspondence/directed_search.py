@@ -12,7 +12,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
 
-from gdt_pipeline import GaussianUncertainty, StageContext, StageSpec, family_stage
+from gdt_pipeline import Dataset, GaussianUncertainty, StageContext, StageSpec, family_stage
 from gdt_pipeline.geometry.extent import check_scales
 from gdt_pipeline.types.region99 import reach_factor
 
@@ -133,35 +133,55 @@ def _directed_survey(params: DirectedParams, slots: Mapping[str, Any]) -> dict[s
                               if ds.faces is not None and len(ds.faces)}}
 
 
-def _largest_variance(u: Any) -> float:
-    """A bound on the largest variance of a model's rows: the largest trace (cheap, and ≥ the top eigenvalue)."""
+def _element_variances(u: Any, n: int) -> np.ndarray:
+    """Per element a bound on its largest variance: its covariance's trace (cheap, and ≥ the top eigenvalue)."""
+    if n == 0:
+        return np.zeros(0)
     cov = np.asarray(u.covariance(u.rows))
-    return float(np.einsum("nii->n", cov).max()) if len(cov) else 0.0
+    trace = np.einsum("nii->n", cov)
+    return np.broadcast_to(trace, (n,)) if len(trace) == 1 else trace
 
 
-def _directed_reach(params: DirectedParams, slots: Mapping[str, Any]) -> float:
-    """How far from its element a candidate can lie: the ray and closest-point reach against meshes, the 99 %
-    ellipsoid against points (with the surface-sampling spread), plus a facet's size for samples on recent facets."""
+def _largest_variance(u: Any) -> float:
+    """A bound on the largest variance of a model's rows: the largest trace."""
+    trace = _element_variances(u, u.rows)
+    return float(trace.max()) if len(trace) else 0.0
+
+
+def _facet_sizes(ds: Dataset) -> np.ndarray:
+    """Per recent element, how far its surface samples can lie from its position: a facet's farthest corner (0 for
+    a point)."""
+    if ds.faces is None or not len(ds.faces):
+        return np.zeros(ds.n_elements)
+    return np.linalg.norm(ds.points[ds.faces] - ds.element_positions()[:, None], axis=2).max(axis=1)
+
+
+def _directed_reach(params: DirectedParams, slots: Mapping[str, Any]) -> list[np.ndarray]:
+    """Per recent element, how far from it a candidate can lie: the ray and closest-point reach against meshes, the
+    99 % ellipsoid against points (with the surface-sampling spread), plus a facet's size for samples on recent
+    facets. A pooled point's reach is its neighbours' too: the runner takes a tile's largest over every element
+    within the widest reach of its core, so its own variance stands for theirs (``runner.halos``)."""
     recent, reference = slots["recent"], slots["reference"]
     if any(ds.uncertainty is None for ds in recent):
         raise ValueError("the search reach needs the recent data's uncertainty: add an uncertainty stage before")
-    var_q = max((_largest_variance(ds.uncertainty) * reach_factor(ds.uncertainty) ** 2 for ds in recent),
-                default=0.0)
-    facet = max((float(np.linalg.norm(ds.points[ds.faces] - ds.element_positions()[:, None], axis=2).max())
-                 for ds in recent if ds.faces is not None and len(ds.faces)), default=0.0)
     meshes = [it for it in reference.items if it.dataset.faces is not None and it.visible.any()]
     var_mesh = max((_largest_variance(it.dataset.uncertainty) for it in meshes), default=0.0)
-    reach = params.search_sigmas * np.sqrt(var_q + var_mesh) if meshes else 0.0
-    if any(it.dataset.faces is None and it.visible.any() for it in reference.items):
-        var_pts = ReferencePoints(reference, params.surface_sampling).max_var
-        reach = max(reach, float(np.sqrt(_chi2_3(params.probability) * (var_q + var_pts))))
-    if params.expectation != "point" and meshes:
-        # a pooled point's neighbours: anchors within the pooling radius, each point within the search reach of its
-        # anchor, twice over (the second pass anchors by the first one's neighbours)
-        slack = params.search_sigmas * np.sqrt(var_q)
-        widest = params.pooling_radius or float(np.sqrt(_chi2_3(0.99) * var_q))
-        reach = max(reach, 2 * widest + 4 * slack)
-    return float(reach + facet)
+    var_pts = (ReferencePoints(reference, params.surface_sampling).max_var
+               if any(it.dataset.faces is None and it.visible.any() for it in reference.items) else None)
+    out = []
+    for ds in recent:
+        var_q = _element_variances(ds.uncertainty, ds.n_elements) * reach_factor(ds.uncertainty) ** 2
+        reach = params.search_sigmas * np.sqrt(var_q + var_mesh) if meshes else np.zeros(ds.n_elements)
+        if var_pts is not None:
+            reach = np.maximum(reach, np.sqrt(_chi2_3(params.probability) * (var_q + var_pts)))
+        if params.expectation != "point" and meshes:
+            # a pooled point's neighbours: anchors within the pooling radius, each point within the search reach of
+            # its anchor, twice over (the second pass anchors by the first one's neighbours)
+            slack = params.search_sigmas * np.sqrt(var_q)
+            widest = params.pooling_radius or np.sqrt(_chi2_3(0.99) * var_q)
+            reach = np.maximum(reach, 2 * widest + 4 * slack)
+        out.append(np.asarray(reach + _facet_sizes(ds), dtype=np.float64))
+    return out
 
 
 def _chi2_3(probability: float) -> float:

@@ -32,6 +32,7 @@ bench: setup
 	$(BIN)/python bench/rov_depth.py
 	$(BIN)/python bench/report.py
 	$(BIN)/python bench/append.py
+	$(BIN)/python bench/tile_halos.py
 	$(BIN)/gdt eval workflows/test_scene.yaml --json out/eval/test_scene/result.json
 	$(BIN)/gdt eval workflows/fuselage.yaml --json out/eval/fuselage/result.json
 

@@ -95,7 +95,7 @@ class TileBounds:
         room = np.minimum((pos[core] - self.lower).min(axis=1), (self.upper - pos[core]).min(axis=1))
         # shrunk a hair so that rounding in the cell arithmetic cannot put a neighbour beyond the room
         proven = within_dense_cells(pos, k, float(room.min()) * (1 - 1e-9) / np.sqrt(3.0), self.lower)
-        return proven | ~core
+        return np.asarray(proven | ~core, dtype=bool)
 
 
 @dataclass(frozen=True)

@@ -35,15 +35,21 @@ def stage_reaches(stages: list[StagePlan], slots: dict[str, Any]) -> list[StageR
         value = 0.0 if st.spec.reach is None else st.spec.reach(st.params, slots)
         per = _per_dataset(st.spec.name, value, [ds.n_elements for ds in slots["recent"]])
         widest = max((float(p.max()) for p in per if p is not None and len(p)),
-                     default=float(value) if np.isscalar(value) else 0.0)
+                     default=0.0 if _per_element(value) else float(value))  # type: ignore[arg-type]
         if not np.isfinite(widest) or widest < 0:
             raise GdtError(f"stage {st.spec.name!r} declared a reach of {widest}; it cannot run in tiles")
         out.append(StageReach(widest, per if per else (None,) * n_sets))
     return out
 
 
+def _per_element(value: object) -> bool:
+    """Whether a declared reach is one array per dataset (a list or tuple), not one figure (a float, a numpy scalar
+    or a 0-d array: ``np.ndim`` would try to stack a ragged list)."""
+    return isinstance(value, (list, tuple))
+
+
 def _per_dataset(name: str, value: float | Sequence[np.ndarray], sizes: list[int]) -> tuple[np.ndarray | None, ...]:
-    if np.isscalar(value):
+    if not _per_element(value):
         return ()
     per = tuple(np.asarray(v, dtype=np.float64) for v in value)  # type: ignore[union-attr]
     if [len(p) for p in per] != sizes:

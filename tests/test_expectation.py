@@ -1,7 +1,8 @@
 """Neighbourhood expectation (``auto``'s ``expectation: neighbourhood``): on a noisy scan of a plane the pooled
 offsets shrink as √n and their stated σ matches their spread; a patch raised by one σ, which no single point
 shows, stands out while the plane around it stays quiet; a step of five σ smears no further than a few cm; a
-sparse cloud keeps the per-point test; whole and tiled runs agree and the twin keeps every input point."""
+sparse cloud keeps the per-point test; whole and tiled runs agree (a tile pools its core bit for bit as the whole
+epoch does) and the twin keeps every input point."""
 
 from __future__ import annotations
 
@@ -178,3 +179,42 @@ def test_a_slab_under_the_noise_is_found_pooled_the_same_whole_or_in_tiles(regis
     report = next(st["report"] for st in TwinStore.open(twins["pooled"]).provenance("E1")["stages"]
                   if st["uses"] == "auto")
     assert report["expectation"]["pooled_share"] > 0.9
+
+
+def _scan_from(rng: np.random.Generator, station: np.ndarray, raise_by: float) -> Dataset:
+    """``_scan``'s points seen from ``station``, 2 cm apart."""
+    g = np.arange(-1.0, 1.0, 0.02)
+    xy = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    clean = np.column_stack([xy, np.where((np.abs(xy) < 0.4).all(axis=1), raise_by, 0.0)])
+    beam = clean - station
+    beam /= np.linalg.norm(beam, axis=1, keepdims=True)
+    cov = SIGMA**2 * np.einsum("ni,nj->nij", beam, beam) + LATERAL**2 * (np.eye(3)[None] - np.einsum(
+        "ni,nj->nij", beam, beam))
+    noisy = clean + beam * rng.normal(0, SIGMA, (len(clean), 1)) + rng.normal(0, LATERAL, clean.shape)
+    return Dataset(f"scan{station[0]:+.1f}", "as-is", noisy, uncertainty=GaussianUncertainty(cov))
+
+
+def test_a_tile_pools_its_core_as_the_whole_epoch_does_and_leaves_the_rest_its_own() -> None:
+    # a slab one σ tall on the plane: beams over it cross two surfaces within their noise, so the second pass's
+    # anchors depend on the first pass of neighbours a tile must pool too
+    rng = np.random.default_rng(8)
+    stations = [np.array([0.9, -0.4, 1.6]), np.array([-1.1, 0.5, 1.4])]
+    scans = [_scan_from(rng, st, SIGMA) for st in stations]
+    slab = trimesh.creation.box(extents=(0.8, 0.8, SIGMA)).apply_translation((0, 0, SIGMA / 2))
+    meshes = _Meshes(trimesh.util.concatenate([trimesh.creation.box(extents=(3.0, 3.0, 0.02)).apply_translation(
+        (0, 0, -0.01)), slab]))
+    params = PoolingParams(64, 0.1, 1.5, 4.0)
+    whole, reaches = pooled_expectations(scans, stations, meshes.scene, meshes.origin, meshes.normals, params)
+    core = [(np.abs(ds.points[:, 0] - 0.35) < 0.15) for ds in scans]  # across the slab's edge
+    halo = max(float(r[c].max()) for r, c in zip(reaches, core, strict=True))
+    crop = [np.abs(ds.points[:, 0] - 0.35) < 0.15 + halo for ds in scans]
+    assert 0 < sum(int(c.sum()) for c in crop) < sum(ds.n_elements for ds in scans)
+    cropped = [Dataset(ds.name, ds.role, ds.points[c], uncertainty=GaussianUncertainty(
+        np.asarray(ds.uncertainty.cov)[c])) for ds, c in zip(scans, crop, strict=True)]
+    kept = [k[c] for k, c in zip(core, crop, strict=True)]
+    tiled, _ = pooled_expectations(cropped, stations, meshes.scene, meshes.origin, meshes.normals, params, kept)
+    for w, t, ds, c, k, inner in zip(whole, tiled, cropped, crop, kept, core, strict=True):
+        assert np.median(w.pooled[inner]) > 30
+        assert np.array_equal(t.position[k], w.position[c][k]) and np.array_equal(t.covariance[k], w.covariance[c][k])
+        assert np.array_equal(t.pooled[k], w.pooled[c][k])
+        assert np.array_equal(t.position[~k], ds.points[~k]) and np.all(t.pooled[~k] == 1)

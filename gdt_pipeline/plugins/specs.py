@@ -74,10 +74,15 @@ class TileBounds:
     lower: np.ndarray
     upper: np.ndarray
 
+    def in_core(self, positions: np.ndarray) -> np.ndarray:
+        """Per position, whether it lies in the core box (bounds included)."""
+        pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        return np.asarray(np.all((pos >= self.core_lower) & (pos <= self.core_upper), axis=1), dtype=bool)
+
     def shortfall(self, positions: np.ndarray, radii: np.ndarray | float) -> float:
         """How much farther the halo must reach for every core element's sphere of ``radii`` to lie inside it."""
         pos = np.asarray(positions, dtype=np.float64)
-        core = np.all((pos >= self.core_lower) & (pos <= self.core_upper), axis=1)
+        core = self.in_core(pos)
         if not core.any():
             return 0.0
         r = np.broadcast_to(np.asarray(radii, dtype=np.float64), (len(pos),))[core]
@@ -89,7 +94,7 @@ class TileBounds:
         point in a grid cube holding k points, the cube's diagonal no longer than every core point's room to the
         halo's edge (outside the core nothing needs proving)."""
         pos = np.asarray(points, dtype=np.float64)
-        core = np.all((pos >= self.core_lower) & (pos <= self.core_upper), axis=1)
+        core = self.in_core(pos)
         if not core.any():
             return np.ones(len(pos), dtype=bool)
         room = np.minimum((pos[core] - self.lower).min(axis=1), (self.upper - pos[core]).min(axis=1))
@@ -118,6 +123,11 @@ class StageContext:
     def report(self, **values: Any) -> None:
         """Record figures worth keeping (a tolerance reached, a rate achieved): they go into the epoch's provenance."""
         self.notes.update(values)
+
+    def kept(self, positions: np.ndarray) -> np.ndarray | None:
+        """Per element at ``positions``, whether its result is kept: in a tile, those in its core grown by the later
+        stages' reach (a stage may skip work for the rest, which only serve as neighbours); elsewhere None (all)."""
+        return None if self.tile is None else self.tile.in_core(positions)
 
     def neighbourhoods(self, positions: np.ndarray, radii: np.ndarray | float) -> None:
         """Declare that the result at each of ``positions`` used data within ``radii`` of it (a k-nearest search's

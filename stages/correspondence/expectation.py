@@ -182,11 +182,14 @@ def _safe_cos(cos: np.ndarray) -> np.ndarray:
     return np.where(np.abs(cos) < MIN_COS, np.copysign(MIN_COS, cos), cos)
 
 
-def _pool(found: list[Anchors], params: PoolingParams, earlier: tuple[np.ndarray, np.ndarray] | None = None
+def _pool(found: list[Anchors], params: PoolingParams, earlier: tuple[np.ndarray, np.ndarray] | None = None,
+          wanted: np.ndarray | None = None, start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per point of all datasets: the pooled offset along its normal, its variance and the neighbours pooled. Without
     ``earlier`` (offsets and variances of a first pass) each point pools within its own dataset; with it, points of
-    other datasets join where their earlier expectations agree within ``GATE_SIGMAS``."""
+    other datasets join where their earlier expectations agree within ``GATE_SIGMAS``. Only the points ``wanted``
+    (all when None) are pooled, into ``start`` (est, variance, used) when given; the others keep their own offset
+    or what ``start`` holds."""
     from scipy.spatial import cKDTree
 
     cat = {name: np.concatenate([getattr(a, name) for a in found]) for name in ("anchor", "normal", "offset",
@@ -194,16 +197,19 @@ def _pool(found: list[Anchors], params: PoolingParams, earlier: tuple[np.ndarray
     rows = np.flatnonzero(cat["ok"])
     radius = params.radius if params.radius is not None else np.sqrt(REGION_99 * cat["largest"])
     radius = np.ascontiguousarray(np.broadcast_to(radius, cat["ok"].shape)[rows], dtype=np.float64)
-    est, est_var = cat["offset"].copy(), cat["variance"].copy()
-    used = np.ones(len(est), dtype=np.int64)
-    if not len(rows):
+    if start is None:
+        est, est_var, used = cat["offset"].copy(), cat["variance"].copy(), np.ones(len(cat["offset"]), np.int64)
+    else:
+        est, est_var, used = start
+    queries = np.arange(len(rows)) if wanted is None else np.flatnonzero(wanted[rows])
+    if not len(queries):
         return est, est_var, used
     source = np.concatenate([np.full(len(a.ok), k, dtype=np.int64) for k, a in enumerate(found)])
     gating = ((source, -1.0, np.zeros(0), np.zeros(0)) if earlier is None
               else (source, GATE_SIGMAS, earlier[0].copy(), earlier[1].copy()))
     tree = cKDTree(cat["anchor"][rows])
-    for start in range(0, len(rows), CHUNK):
-        chunk = np.arange(start, min(start + CHUNK, len(rows)))
+    for first in range(0, len(queries), CHUNK):
+        chunk = queries[first:first + CHUNK]
         dist, nb = tree.query(tree.data[chunk], k=min(params.neighbours, len(rows)),
                               distance_upper_bound=float(radius[chunk].max()), workers=-1)
         pool_rows(chunk, nb.reshape(len(chunk), -1), dist.reshape(len(chunk), -1), radius, rows, cat["anchor"],
@@ -212,26 +218,72 @@ def _pool(found: list[Anchors], params: PoolingParams, earlier: tuple[np.ndarray
     return est, est_var, used
 
 
-def pooled_expectations(datasets: list[Dataset], stations: list[np.ndarray | None], scene: object, origin: np.ndarray,
-                        normals: list[np.ndarray], params: PoolingParams) -> tuple[list[Expectation], list[np.ndarray]]:
-    """The expectation of every point of ``datasets`` (point clouds with Gaussian covariances), pooled over all of
-    them, and per dataset how far from each point its pooling could reach (for a tile's halo)."""
-    covs = [np.asarray(ds.uncertainty.covariance(ds.n_elements), dtype=np.float64) for ds in datasets]
-    lines = [cast_lines(scene, origin, normals, ds.points, c, st, params.reach_sigmas)
-             for ds, c, st in zip(datasets, covs, stations, strict=True)]
-    found = [surface_anchors(li) for li in lines]
-    est, est_var, used = _pool(found, params)
-    # the second pass anchors each point on the crossing nearest to its first expectation: where two surfaces lie
-    # within the noise along a beam, one point cannot tell which it is on, its neighbourhood can
+def _targets(found: list[Anchors], est: np.ndarray) -> list[np.ndarray]:
+    """Per dataset, where each point's line meets the surface its first-pass neighbours put there: the offset's
+    change over the cosine, a distance back along the line."""
     at, targets = 0, []
     for a in found:
         sl = slice(at, at + len(a.ok))
         at += len(a.ok)
-        # where the line meets the surface its neighbours put it: the offset's change over the cosine
         cos = _safe_cos(np.einsum("ij,ij->i", a.normal, a.axis))
         targets.append(np.where(a.ok, (a.offset - est[sl]) / cos, 0.0))
-    found = [surface_anchors(li, tg) for li, tg in zip(lines, targets, strict=True)]
-    est, est_var, used = _pool(found, params, (est, est_var))
+    return targets
+
+
+def _may_join(lines: list[Lines], second: list[Anchors], wanted: np.ndarray, params: PoolingParams) -> np.ndarray:
+    """Per point of all datasets, whether the second pass of a ``wanted`` point may pool it: one of its line's
+    crossings (any of which may become its second anchor) lies within the pooling radius of a wanted point's second
+    anchor. Only those need a first pass of their own."""
+    from scipy.spatial import cKDTree
+
+    anchor = np.concatenate([a.anchor for a in second])
+    ok = np.concatenate([a.ok for a in second]) & wanted
+    out = np.zeros(len(wanted), dtype=bool)
+    if not ok.any():
+        return out
+    largest = np.concatenate([li.largest for li in lines])[ok]
+    radius = params.radius if params.radius is not None else float(np.sqrt(REGION_99 * largest.max()))
+    tree = cKDTree(anchor[ok])
+    at = 0
+    for li in lines:
+        crossings = np.concatenate([li.pos[li.ray] - li.axis[li.ray] * li.along[:, None], li.closest])
+        owner = np.concatenate([li.ray, li.closest_rows])
+        finite = np.isfinite(crossings[:, 0])
+        dist, _ = tree.query(crossings[finite], k=1, distance_upper_bound=radius, workers=-1)
+        out[at + owner[finite][np.isfinite(dist)]] = True
+        at += len(li.pos)
+    return out
+
+
+def _two_passes(lines: list[Lines], params: PoolingParams, wanted: np.ndarray | None
+                ) -> tuple[list[Anchors], np.ndarray, np.ndarray, np.ndarray]:
+    """The second pass's anchors and the pooled offsets, variances and neighbours of the ``wanted`` points (all when
+    None). A tile wants its core's: the first pass runs for them and for the points their second pass may pool, the
+    second for them only, with the results a whole epoch gives them."""
+    found = [surface_anchors(li) for li in lines]
+    est, est_var, used = _pool(found, params, wanted=wanted)
+    if wanted is not None:
+        second = [surface_anchors(li, tg) for li, tg in zip(lines, _targets(found, est), strict=True)]
+        others = _may_join(lines, second, wanted, params) & ~wanted
+        est, est_var, used = _pool(found, params, wanted=others, start=(est, est_var, used))
+    # the second pass anchors each point on the crossing nearest to its first expectation: where two surfaces lie
+    # within the noise along a beam, one point cannot tell which it is on, its neighbourhood can
+    found = [surface_anchors(li, tg) for li, tg in zip(lines, _targets(found, est), strict=True)]
+    est, est_var, used = _pool(found, params, (est, est_var), wanted=wanted)
+    return found, est, est_var, used
+
+
+def pooled_expectations(datasets: list[Dataset], stations: list[np.ndarray | None], scene: object, origin: np.ndarray,
+                        normals: list[np.ndarray], params: PoolingParams, kept: list[np.ndarray] | None = None
+                        ) -> tuple[list[Expectation], list[np.ndarray]]:
+    """The expectation of every point of ``datasets`` (point clouds with Gaussian covariances), pooled over all of
+    them, and per dataset how far from each point its pooling could reach (for a tile's halo). With ``kept`` (per
+    dataset, the points whose results are kept) the others keep their own position and covariance."""
+    covs = [np.asarray(ds.uncertainty.covariance(ds.n_elements), dtype=np.float64) for ds in datasets]
+    lines = [cast_lines(scene, origin, normals, ds.points, c, st, params.reach_sigmas)
+             for ds, c, st in zip(datasets, covs, stations, strict=True)]
+    wanted = None if kept is None else np.concatenate(kept)
+    found, est, est_var, used = _two_passes(lines, params, wanted)
     sizes = np.array([ds.n_elements for ds in datasets])
     largest = max((float(a.largest.max(initial=0.0)) for a in found), default=0.0)
     slack = params.reach_sigmas * np.sqrt(largest)
@@ -240,7 +292,7 @@ def pooled_expectations(datasets: list[Dataset], stations: list[np.ndarray | Non
     for ds, c, a, n in zip(datasets, covs, found, sizes, strict=True):
         sl = slice(at, at + n)
         at += n
-        pooled = a.ok & (used[sl] >= MIN_NEIGHBOURS)
+        pooled = a.ok & (used[sl] >= MIN_NEIGHBOURS) & (True if wanted is None else wanted[sl])
         # the expectation stays on the point's line (its beam): where the line meets the surface its neighbours
         # put there. Across the line the point's own σ (small for a scanner); along it the pooled σ over the
         # cosine, so its spread along the surface shrinks with the pooling too
@@ -281,12 +333,15 @@ def expectations(ctx: StageContext, meshes: Any) -> dict[str, Expectation]:
     normals = [ctx["reference"].items[i].dataset.facet_normals(unit=True)[vis] for i, vis in meshes.items]
     stations = [ds.viewpoints[0] if ds.viewpoints is not None and len(ds.viewpoints) == 1 else None
                 for ds in chosen]
+    kept = [ctx.kept(ds.points) for ds in chosen]
     found, reaches = pooled_expectations(chosen, stations, meshes.scene, meshes.origin, normals,
                                          PoolingParams(p.pooling_neighbours, radius, p.pooling_gamma,
-                                                       p.search_sigmas))
+                                                       p.search_sigmas),
+                                         None if ctx.tile is None else [k for k in kept if k is not None])
     for ds, reach in zip(chosen, reaches, strict=True):
         ctx.neighbourhoods(ds.points, reach)
-    pooled = np.concatenate([e.pooled for e in found])
+    # in a tile, of the points it keeps (the others were not pooled)
+    pooled = np.concatenate([e.pooled if k is None else e.pooled[k] for e, k in zip(found, kept, strict=True)])
     ctx.report(expectation={
         "pooled_share": round(float(np.mean(pooled > 1)), 4) if len(pooled) else 0.0,
         "median_neighbours": int(np.median(pooled[pooled > 1])) if np.any(pooled > 1) else 1,

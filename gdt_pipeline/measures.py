@@ -225,6 +225,15 @@ def _add_counts(total: Counts, counts: Mapping[str, Mapping[str, int]]) -> None:
             into[key] = into.get(key, 0) + int(n)
 
 
+def _kept_sources(sources: list[PairSource], kept: np.ndarray | None) -> list[PairSource]:
+    """The pairs of ``sources`` whose query element is ``kept`` (all when None): a tile's halo elements only serve as
+    neighbours, and unpooled they may be the dearest pairs to integrate."""
+    if kept is None:
+        return sources
+    cut = [dataclasses.replace(src, idx=src.idx[kept[src.element[src.idx]]]) for src in sources]
+    return [src for src in cut if len(src.idx)]
+
+
 def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: PairMeasure,
                   prepare: Prepare | None = None, counts: Counts | None = None,
                   cover: ReferenceCoverage | None = None) -> tuple[Scores, float]:
@@ -236,7 +245,7 @@ def score_dataset(ctx: StageContext, corr: Correspondences, name: str, measure: 
     cand_score = np.full(m, np.nan)
     cand_p = None
     worst = 0.0
-    sources: list[Any] = pair_sources(ds, corr, ctx["reference"])
+    sources: list[Any] = _kept_sources(pair_sources(ds, corr, ctx["reference"]), ctx.kept(ds.element_positions()))
     groups: list[Any] = sources
     if prepare is not None:  # prepared groups (e.g. with local normals) are what the simulator must draw from
         groups = sources = prepare([src.whole() for src in sources], corr.query)

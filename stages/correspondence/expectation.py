@@ -106,6 +106,14 @@ class Lines:
     closest: np.ndarray
     closest_normal: np.ndarray
 
+    def crossings(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every place the lines meet the meshes within reach (closest points included) and the point it belongs
+        to; a closest point out of reach is not one."""
+        where = np.concatenate([self.pos[self.ray] - self.axis[self.ray] * self.along[:, None], self.closest])
+        owner = np.concatenate([self.ray, self.closest_rows])
+        found = np.isfinite(where[:, 0])
+        return where[found], owner[found]
+
 
 def cast_lines(scene: object, origin: np.ndarray, normals: list[np.ndarray], pos: np.ndarray, cov: np.ndarray,
                station: np.ndarray | None, reach_sigmas: float) -> Lines:
@@ -246,11 +254,9 @@ def _may_join(lines: list[Lines], second: list[Anchors], wanted: np.ndarray, par
     tree = cKDTree(anchor[ok])
     at = 0
     for li in lines:
-        crossings = np.concatenate([li.pos[li.ray] - li.axis[li.ray] * li.along[:, None], li.closest])
-        owner = np.concatenate([li.ray, li.closest_rows])
-        finite = np.isfinite(crossings[:, 0])
-        dist, _ = tree.query(crossings[finite], k=1, distance_upper_bound=radius, workers=-1)
-        out[at + owner[finite][np.isfinite(dist)]] = True
+        where, owner = li.crossings()
+        dist, _ = tree.query(where, k=1, distance_upper_bound=radius, workers=-1)
+        out[at + owner[np.isfinite(dist)]] = True
         at += len(li.pos)
     return out
 
@@ -333,15 +339,15 @@ def expectations(ctx: StageContext, meshes: Any) -> dict[str, Expectation]:
     normals = [ctx["reference"].items[i].dataset.facet_normals(unit=True)[vis] for i, vis in meshes.items]
     stations = [ds.viewpoints[0] if ds.viewpoints is not None and len(ds.viewpoints) == 1 else None
                 for ds in chosen]
-    kept = [ctx.kept(ds.points) for ds in chosen]
+    kept = [k for ds in chosen if (k := ctx.kept(ds.points)) is not None] or None  # None: a whole epoch's
     found, reaches = pooled_expectations(chosen, stations, meshes.scene, meshes.origin, normals,
                                          PoolingParams(p.pooling_neighbours, radius, p.pooling_gamma,
-                                                       p.search_sigmas),
-                                         None if ctx.tile is None else [k for k in kept if k is not None])
+                                                       p.search_sigmas), kept)
     for ds, reach in zip(chosen, reaches, strict=True):
         ctx.neighbourhoods(ds.points, reach)
     # in a tile, of the points it keeps (the others were not pooled)
-    pooled = np.concatenate([e.pooled if k is None else e.pooled[k] for e, k in zip(found, kept, strict=True)])
+    pooled = np.concatenate([e.pooled for e in found] if kept is None else
+                            [e.pooled[k] for e, k in zip(found, kept, strict=True)])
     ctx.report(expectation={
         "pooled_share": round(float(np.mean(pooled > 1)), 4) if len(pooled) else 0.0,
         "median_neighbours": int(np.median(pooled[pooled > 1])) if np.any(pooled > 1) else 1,

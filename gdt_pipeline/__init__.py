@@ -5,6 +5,8 @@ from importlib.metadata import PackageNotFoundError, version
 
 from .errors import GdtError, InputError, PluginError, StageError, WorkflowError
 from .plugins import (
+    BoxRead,
+    BoxSource,
     ExecutorOptions,
     ExecutorSpec,
     ReaderSpec,
@@ -46,6 +48,8 @@ except PackageNotFoundError:  # running from a source tree that was not installe
     __version__ = "0.0.0+unknown"
 
 __all__ = [
+    "BoxRead",
+    "BoxSource",
     "BoxUncertainty",
     "Change",
     "ChangeState",

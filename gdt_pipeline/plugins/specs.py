@@ -254,6 +254,31 @@ class ReadRequest:
 
 
 @dataclass(frozen=True)
+class BoxRead:
+    """The points of one box of an input: their element numbers (as the whole read numbers them, ascending), their
+    coordinates in the file's units and the per-point fields the whole read would give them."""
+
+    elements: np.ndarray
+    points: np.ndarray
+    fields: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+class BoxSource(Protocol):
+    """An input opened for reading one box at a time (``ReaderSpec.boxes``), without ever holding the whole file:
+    ``count`` elements (after the reader's filters) within ``lower``..``upper`` (file units)."""
+
+    count: int
+    lower: np.ndarray
+    upper: np.ndarray
+
+    def read_box(self, lower: np.ndarray, upper: np.ndarray) -> BoxRead:
+        """The elements inside the closed box [lower, upper], exactly those the whole read puts there."""
+
+    def close(self) -> None:
+        """Let go of the file."""
+
+
+@dataclass(frozen=True)
 class ReaderSpec:
     """A file reader as a plugin declares it (hook ``gdt_readers``).
 
@@ -271,6 +296,9 @@ class ReaderSpec:
     read: Callable[[ReadRequest], Dataset | list[Dataset]]
     params: type[BaseModel] = BaseModel
     accepts: Callable[[Path, str | None], bool] | None = None
+    # An input opened for box reads (the same request, the same elements as ``read``): what lets a tile read only
+    # its own points of a large file. None where the format has no way to find a box's points but reading them all.
+    boxes: Callable[[ReadRequest], BoxSource] | None = None
     description: str = ""
     plugin: str = ""
     plugin_version: str = ""

@@ -151,17 +151,17 @@ def read_las_points(path: Path, classes: list[int] | None) -> np.ndarray:
     return read_las(path, classes, ())[0]
 
 
-def _colour_scale(chunk: Any) -> float:
-    """LAS stores RGB as 16-bit, but many writers put 8-bit values there: a chunk whose channels all stay within
-    0..255 is read as 8-bit (the convention CloudCompare and PDAL follow too)."""
-    top = max(int(np.max(chunk.red, initial=0)), int(np.max(chunk.green, initial=0)),
-              int(np.max(chunk.blue, initial=0)))
+def colour_scale(top: int) -> float:
+    """LAS stores RGB as 16-bit, but many writers put 8-bit values there: a file whose channels all stay within
+    0..255 is read as 8-bit (the convention CloudCompare and PDAL follow too). Decided for the whole file, so that a
+    dark first part of a scan is not read on another scale than the rest, and a tile the same as the whole read."""
     return 255.0 if top <= 255 else 65535.0
 
 
-def _attribute_rows(chunk: Any, keep: Any, attributes: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """The attributes asked for that a chunk's point format has: intensity as float32, colour as float32 0..1,
-    the ASPRS classification as uint8 (every point format has one)."""
+def attribute_rows(chunk: Any, keep: Any, attributes: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The attributes asked for that a chunk's point format has: intensity as float32, colour as the file's uint16
+    (scaled once the file's largest value is known: :func:`scaled_colour`), the ASPRS classification as uint8
+    (every point format has one)."""
     names = set(chunk.point_format.dimension_names)
     out: dict[str, np.ndarray] = {}
     if "classification" in attributes and "classification" in names:
@@ -169,9 +169,15 @@ def _attribute_rows(chunk: Any, keep: Any, attributes: tuple[str, ...]) -> dict[
     if "intensity" in attributes and "intensity" in names:
         out["intensity"] = np.asarray(chunk.intensity, dtype=np.float32)[keep]
     if "color" in attributes and {"red", "green", "blue"} <= names:
-        rgb = np.column_stack([np.asarray(chunk.red), np.asarray(chunk.green), np.asarray(chunk.blue)])[keep]
-        out["color"] = (rgb / _colour_scale(chunk)).astype(np.float32)
+        out["color"] = np.column_stack([np.asarray(chunk.red), np.asarray(chunk.green), np.asarray(chunk.blue)])[keep]
     return out
+
+
+def scaled_colour(fields: dict[str, np.ndarray], top: int) -> dict[str, np.ndarray]:
+    """``fields`` with the raw colour as float32 0..1 on the scale of a file whose largest channel value is ``top``."""
+    if "color" in fields:
+        fields["color"] = (fields["color"] / colour_scale(top)).astype(np.float32)
+    return fields
 
 
 def read_las(path: Path, classes: list[int] | None, attributes: tuple[str, ...] = ("intensity", "color")
@@ -196,7 +202,7 @@ def read_las(path: Path, classes: list[int] | None, attributes: tuple[str, ...] 
                 rows = pts[filled:filled + (n if classes is None else int(np.count_nonzero(keep)))]
                 for axis, values in enumerate((chunk.x, chunk.y, chunk.z)):
                     rows[:, axis] = np.asarray(values)[keep]
-                for name, values in _attribute_rows(chunk, keep, attributes).items():
+                for name, values in attribute_rows(chunk, keep, attributes).items():
                     fields.setdefault(name, []).append(values)
                 filled += len(rows)
                 read += n
@@ -206,7 +212,8 @@ def read_las(path: Path, classes: list[int] | None, attributes: tuple[str, ...] 
         raise _failed(path, "LAS/LAZ", exc) from exc
     if read != count:
         raise InputError(f"{path}: the LAS header declares {count} points, laspy read {read}")
-    return pts[:filled], {name: np.concatenate(parts) for name, parts in fields.items()}
+    merged = {name: np.concatenate(parts) for name, parts in fields.items()}
+    return pts[:filled], scaled_colour(merged, int(np.max(merged["color"], initial=0)) if "color" in merged else 0)
 
 
 class LasParams(BaseModel):
@@ -228,5 +235,13 @@ def _read_las(req: ReadRequest) -> Dataset:
     return Dataset(name=req.name, role=req.role, points=pts, fields=fields)
 
 
+def _boxes(req: ReadRequest) -> Any:  # las_boxes imports this module
+    from .las_boxes import las_boxes
+
+    return las_boxes(req)
+
+
 READER = ReaderSpec(name="laspy_points", version=VERSION, params=LasParams, read=_read_las, extensions=(".las", ".laz"),
-                    description="LAS/LAZ LiDAR point clouds through laspy (lazrs backend).")
+                    boxes=_boxes,
+                    description="LAS/LAZ LiDAR point clouds (and COPC) through laspy (lazrs backend); reads a box at "
+                                "a time through a first-pass index, or a COPC file's octree.")

@@ -33,6 +33,7 @@ bench: setup
 	$(BIN)/python bench/report.py
 	$(BIN)/python bench/append.py
 	$(BIN)/python bench/tile_halos.py
+	$(BIN)/python bench/tile_reads.py
 	$(BIN)/gdt eval workflows/test_scene.yaml --json out/eval/test_scene/result.json
 	$(BIN)/gdt eval workflows/fuselage.yaml --json out/eval/fuselage/result.json
 

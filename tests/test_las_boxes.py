@@ -79,7 +79,8 @@ def test_a_las_box_holds_what_the_whole_read_puts_there(tmp_path: Path, monkeypa
     rgb = rng.integers(0, 256, (len(pts), 3)).astype(np.uint16)  # 8-bit colour in 16-bit fields: scaled per file
     _write_las(path, pts, rng.choice([1, 2, 6], len(pts)).astype(np.uint8), rgb)
     monkeypatch.setattr(boxes_io, "LAS_RUN", 4096)
-    monkeypatch.setattr(las_io, "CHUNK_POINTS", 10_000)  # pieces shorter than some runs of chunks
+    monkeypatch.setattr(las_io, "CHUNK_POINTS", 10_000)  # first-pass pieces across runs
+    monkeypatch.setattr(boxes_io, "BOX_PIECE", 3000)  # a box's pieces shorter than a run
     source = boxes_io.open_las_boxes(path, classes, ("intensity", "color", "classification"))
     try:
         assert source.index.n_chunks == (len(pts) + source.run - 1) // source.run
@@ -90,7 +91,9 @@ def test_a_las_box_holds_what_the_whole_read_puts_there(tmp_path: Path, monkeypa
 
 
 @pytest.mark.parametrize("classes", [None, [2]])
-def test_a_copc_box_holds_what_the_whole_read_puts_there(tmp_path: Path, classes: list[int] | None) -> None:
+def test_a_copc_box_holds_what_the_whole_read_puts_there(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                          classes: list[int] | None) -> None:
+    monkeypatch.setattr(boxes_io, "BOX_PIECE", 5000)  # groups of one or two nodes
     rng = np.random.default_rng(12)
     pts = _scan_like(90_000, rng)
     path = write_copc(tmp_path / "scan.copc.laz", pts, scale=1e-4, node_points=3000,
@@ -119,3 +122,40 @@ def test_the_reader_offers_box_reads_and_a_bad_file_names_itself(tmp_path: Path)
     cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     with pytest.raises(InputError, match=r"cut\.laz"):
         boxes_io.open_las_boxes(cut, None, ())
+
+
+def test_a_binary_ply_box_holds_what_the_whole_read_puts_there(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+                                                                ) -> None:
+    import open3d as o3d
+
+    import stages.io.ply_boxes as ply_boxes
+    from stages.io.ply import read_ply
+
+    rng = np.random.default_rng(14)
+    pts = _scan_like(50_000, rng)
+    path = tmp_path / "scan.ply"
+    o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)), write_ascii=False)
+    monkeypatch.setattr(ply_boxes, "PLY_RUN", 2048)
+    source = ply_boxes.PlyBoxes(path)
+    whole = read_ply(path).vertices
+    try:
+        assert source.count == len(whole) and source.index.n_chunks == 25
+        shares = []
+        for lo, hi in _boxes(rng, whole.min(axis=0), whole.max(axis=0), 12):
+            got = source.read_box(lo, hi)
+            want = np.flatnonzero(np.all((whole >= lo) & (whole <= hi), axis=1))
+            assert np.array_equal(got.elements, want) and np.array_equal(got.points, whole[want])
+            shares.append(len(source.index.chunks(lo, hi)) / source.index.n_chunks)
+    finally:
+        source.close()
+    assert np.mean(shares[:-3]) < 0.45
+    bad = whole.copy()
+    bad[30_001] = np.nan
+    o3d.io.write_point_cloud(str(tmp_path / "nan.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(bad)),
+                             write_ascii=False)
+    with pytest.raises(InputError, match=r"nan\.ply: vertex row 30001 "):
+        ply_boxes.PlyBoxes(tmp_path / "nan.ply")
+    o3d.io.write_point_cloud(str(tmp_path / "text.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[:9])),
+                             write_ascii=True)
+    with pytest.raises(InputError, match=r"text\.ply: box reads need a binary PLY"):
+        ply_boxes.PlyBoxes(tmp_path / "text.ply")

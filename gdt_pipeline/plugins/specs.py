@@ -297,8 +297,9 @@ class ReaderSpec:
     params: type[BaseModel] = BaseModel
     accepts: Callable[[Path, str | None], bool] | None = None
     # An input opened for box reads (the same request, the same elements as ``read``): what lets a tile read only
-    # its own points of a large file. None where the format has no way to find a box's points but reading them all.
-    boxes: Callable[[ReadRequest], BoxSource] | None = None
+    # its own points of a large file. None, or returning None for a file, where the format (or that file: an ASCII
+    # PLY) has no way to find a box's points but reading them all.
+    boxes: Callable[[ReadRequest], BoxSource | None] | None = None
     description: str = ""
     plugin: str = ""
     plugin_version: str = ""

@@ -26,7 +26,7 @@ _VLR_HEADER, _EVLR_HEADER = 54, 60
 CHUNK_POINTS = 2_000_000
 
 
-def _failed(path: Path, what: str, exc: BaseException) -> InputError:
+def failure(path: Path, what: str, exc: BaseException) -> InputError:
     """laspy's failure as an error naming the file; lazrs (Rust) reports a panic as pyo3's PanicException, a
     BaseException that ``except Exception`` misses, so it is caught here and anything else non-Exception re-raised."""
     if not isinstance(exc, Exception) and type(exc).__name__ != "PanicException":
@@ -67,17 +67,18 @@ def _check_public_header(path: Path, data: bytes, size: int) -> None:
                              f"is {size} bytes")
 
 
-def _header(path: Path) -> Any:  # laspy.LasHeader, imported lazily
+def las_header(path: Path) -> Any:  # laspy.LasHeader, imported lazily
+    """The file's header as laspy reads it (its failure named as the file's)."""
     import laspy
 
     try:
         with laspy.open(str(path)) as reader:
             return reader.header
-    except BaseException as exc:  # lazrs panics are BaseExceptions: see _failed
-        raise _failed(path, "the LAS/LAZ header", exc) from exc
+    except BaseException as exc:  # lazrs panics are BaseExceptions: see failure
+        raise failure(path, "the LAS/LAZ header", exc) from exc
 
 
-def _laszip_vlr(data: bytes, n_vlrs: int) -> bytes | None:
+def laszip_vlr(data: bytes, n_vlrs: int) -> bytes | None:
     """The LASzip VLR's payload among the VLRs ``data`` holds (None when there is none)."""
     pos = 0
     for _ in range(n_vlrs):
@@ -97,7 +98,7 @@ def _check_laz(path: Path, fh: BinaryIO, count: int, size: int) -> None:
     header_size, offset, n_vlrs, record = (_field(header, "H", 94), _field(header, "I", 96),
                                            _field(header, "I", 100), _field(header, "H", 105))
     fh.seek(header_size)
-    vlr = _laszip_vlr(fh.read(offset - header_size), n_vlrs)
+    vlr = laszip_vlr(fh.read(offset - header_size), n_vlrs)
     if vlr is None or len(vlr) < 34 or len(vlr) < 34 + 6 * _field(vlr, "H", 32):
         raise InputError(f"{path}: compressed points but no readable LASzip VLR (bytes {header_size}-{offset})")
     n_items = _field(vlr, "H", 32)
@@ -125,7 +126,7 @@ def check_las_header(path: Path) -> int:
     size = path.stat().st_size
     with open(path, "rb") as fh:
         _check_public_header(path, fh.read(375), size)
-    header = _header(path)
+    header = las_header(path)
     count, record = int(header.point_count), int(header.point_format.size)
     offset = int(header.offset_to_point_data)
     scales = np.asarray(header.scales, dtype=np.float64)
@@ -193,7 +194,7 @@ def read_las(path: Path, classes: list[int] | None, attributes: tuple[str, ...] 
     fields: dict[str, list[np.ndarray]] = {}
     filled = read = 0
     try:
-        with laspy.open(str(path)) as reader:
+        with laspy.open(str(path)) as reader:  # LAZ chunks on every core: laspy's default backend
             for chunk in reader.chunk_iterator(CHUNK_POINTS):
                 n = len(chunk)
                 if read + n > count:
@@ -208,8 +209,8 @@ def read_las(path: Path, classes: list[int] | None, attributes: tuple[str, ...] 
                 read += n
     except InputError:
         raise
-    except BaseException as exc:  # lazrs panics are BaseExceptions: see _failed
-        raise _failed(path, "LAS/LAZ", exc) from exc
+    except BaseException as exc:  # lazrs panics are BaseExceptions: see failure
+        raise failure(path, "LAS/LAZ", exc) from exc
     if read != count:
         raise InputError(f"{path}: the LAS header declares {count} points, laspy read {read}")
     merged = {name: np.concatenate(parts) for name, parts in fields.items()}

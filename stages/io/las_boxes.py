@@ -25,6 +25,9 @@ from .chunk_index import CellGrid, ChunkIndex, in_box, runs
 
 # Records per run of an uncompressed LAS (seeking there is free) and of a LAZ whose chunks vary in size.
 LAS_RUN = 65_536
+# Records decompressed at a time by a box read (about 8 MB of records in the common formats): what a box holds
+# besides its own points.
+BOX_PIECE = 262_144
 _VARIABLE = 0xFFFFFFFF
 
 
@@ -35,7 +38,7 @@ def _laz_chunk_size(path: Path) -> int | None:
         header_size, offset, n_vlrs = (struct.unpack_from("<H", head, 94)[0], struct.unpack_from("<I", head, 96)[0],
                                        struct.unpack_from("<I", head, 100)[0])
         fh.seek(header_size)
-        vlr = las_io._laszip_vlr(fh.read(offset - header_size), n_vlrs)
+        vlr = las_io.laszip_vlr(fh.read(offset - header_size), n_vlrs)
     if vlr is None:
         return None
     size = int(struct.unpack_from("<I", vlr, 12)[0])
@@ -115,8 +118,8 @@ class _ChunkedBoxes:
                                      f"{indexed - start} when the file was indexed (was it changed while being read?)")
         except InputError:
             raise
-        except BaseException as exc:  # lazrs panics are BaseExceptions: see las._failed
-            raise las_io._failed(self.path, "a box of the LAS/LAZ", exc) from exc
+        except BaseException as exc:  # lazrs panics are BaseExceptions: see las.failure
+            raise las_io.failure(self.path, "a box of the LAS/LAZ", exc) from exc
         merged = {name: np.concatenate(fields.get(name, [empty])) for name, empty in self._no_fields().items()}
         return BoxRead(np.concatenate(numbers) if numbers else np.zeros(0, np.int64),
                        np.concatenate(points) if points else np.zeros((0, 3)),
@@ -174,16 +177,16 @@ class LasBoxes(_ChunkedBoxes):
         rows[-1] = self.total - self.run * (n_chunks - 1)
         try:
             cells, kept, lower, upper = self._scan(self._all_pieces(), grid, n_chunks, True)
-        except BaseException as exc:  # lazrs panics are BaseExceptions: see las._failed
+        except BaseException as exc:  # lazrs panics are BaseExceptions: see las.failure
             self.close()
             if isinstance(exc, InputError):
                 raise
-            raise las_io._failed(path, "LAS/LAZ while indexing it", exc) from exc
+            raise las_io.failure(path, "LAS/LAZ while indexing it", exc) from exc
         self.index = ChunkIndex.of(grid, cells, rows, kept, lower, upper)
 
     def _all_pieces(self) -> Iterator[tuple[np.ndarray, Any]]:
         read = 0
-        for records in self._sequential(0):
+        for records in self._sequential(0, None):
             n = len(records)
             if read + n > self.total:
                 raise InputError(f"{self.path}: the LAS header declares {self.total} points, but the file holds more")
@@ -192,8 +195,8 @@ class LasBoxes(_ChunkedBoxes):
         if read != self.total:
             raise InputError(f"{self.path}: the LAS header declares {self.total} points, laspy read {read}")
 
-    def _sequential(self, start: int) -> Iterator[Any]:
-        """Records from row ``start`` to the end, a bounded piece at a time."""
+    def _sequential(self, start: int, stop: int | None) -> Iterator[Any]:
+        """Records of rows [start, stop) (to the end for None), a bounded piece at a time."""
         if self.seekable:
             self.reader.seek(start)
         else:  # no seek into variable-size LAZ chunks: decompress from the start and drop what lies before
@@ -204,21 +207,16 @@ class LasBoxes(_ChunkedBoxes):
             skip = start
             while skip > 0:
                 skip -= len(self.reader.read_points(min(skip, las_io.CHUNK_POINTS)))
-        while True:
-            records = self.reader.read_points(las_io.CHUNK_POINTS)
+        row = start
+        while stop is None or row < stop:
+            records = self.reader.read_points(las_io.CHUNK_POINTS if stop is None else min(BOX_PIECE, stop - row))
             if len(records) == 0:
                 return
+            row += len(records)
             yield records
 
     def _records(self, first: int, last: int) -> Iterator[Any]:
-        start, stop = int(self.index.rows[first]), int(self.index.rows[last])
-        row = start
-        for records in self._sequential(start):
-            take = min(len(records), stop - row)
-            yield records[:take]
-            row += take
-            if row >= stop:
-                return
+        yield from self._sequential(int(self.index.rows[first]), int(self.index.rows[last]))
 
     def _header(self) -> Any:
         return self.reader.header
@@ -241,8 +239,8 @@ class CopcBoxes(_ChunkedBoxes):
             self.reader = laspy.CopcReader.open(str(path))
             nodes = sorted(load_octree_for_query(self.reader.source, self.reader.copc_info, self.reader.root_page),
                            key=lambda node: node.offset)
-        except BaseException as exc:  # lazrs panics are BaseExceptions: see las._failed
-            raise las_io._failed(path, "the COPC hierarchy", exc) from exc
+        except BaseException as exc:  # lazrs panics are BaseExceptions: see las.failure
+            raise las_io.failure(path, "the COPC hierarchy", exc) from exc
         self.offsets = np.array([n.offset for n in nodes], np.int64)
         self.sizes = np.array([n.byte_size for n in nodes], np.int64)
         counts = np.array([n.point_count for n in nodes], np.int64)
@@ -281,7 +279,7 @@ class CopcBoxes(_ChunkedBoxes):
         while node < last:
             end = node + 1
             while (end < last and self.offsets[end] == self.offsets[end - 1] + self.sizes[end - 1]
-                   and self.counts[node:end + 1].sum() <= las_io.CHUNK_POINTS):
+                   and self.counts[node:end + 1].sum() <= BOX_PIECE):
                 end += 1
             self.reader.source.seek(int(self.offsets[node]))
             compressed = self.reader.source.read(int(self.offsets[end - 1] + self.sizes[end - 1] - self.offsets[node]))
@@ -304,7 +302,7 @@ class CopcBoxes(_ChunkedBoxes):
 
 def open_las_boxes(path: Path, classes: list[int] | None, attributes: tuple[str, ...]) -> LasBoxes | CopcBoxes:
     """A LAS/LAZ or COPC file opened for box reads (a COPC file through its octree, any other through a first pass)."""
-    header = las_io._header(path)
+    header = las_io.las_header(path)
     return (CopcBoxes if _is_copc(header) else LasBoxes)(path, classes, attributes)
 
 

@@ -48,7 +48,8 @@ class ElementData:
         return f"{what} (byte offset {self.offset + row * self.row_bytes})" if self.row_bytes else what
 
 
-def _dtype(props: list[Prop], endian: str, lists: dict[str, int]) -> np.dtype:
+def row_dtype(props: list[Prop], endian: str, lists: dict[str, int]) -> np.dtype:
+    """The numpy record type of a binary row (``lists``: each list property's item count)."""
     parts = []
     for p in props:
         if p.count_dtype is not None:
@@ -80,7 +81,7 @@ def _uniform_rows(data: np.ndarray, offset: int, el: Element, endian: str) -> El
     lists = {} if el.fixed else _first_row_lists(data, offset, el, endian)
     if lists is None:
         return None
-    dt = _dtype(el.props, endian, lists)
+    dt = row_dtype(el.props, endian, lists)
     need = el.count * dt.itemsize
     if need > len(data) - offset:
         return None

@@ -6,6 +6,7 @@ array after printing "Read ... failed", so nothing it returns is trusted without
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
@@ -13,7 +14,7 @@ from pydantic import BaseModel, ConfigDict
 from gdt_pipeline import Dataset, InputError, ReaderSpec, ReadRequest
 
 from .ply import read_ply
-from .ply_header import face_count
+from .ply_header import face_count, read_header
 from .text import Rows, check_finite, check_integral, table
 from .version import VERSION
 
@@ -185,6 +186,16 @@ def _read_points(req: ReadRequest) -> Dataset:
     return Dataset(name=req.name, role=req.role, points=read_point_file(req.path))
 
 
+def _boxes(req: ReadRequest) -> Any:
+    """A binary PLY point cloud opened for box reads; other formats (text, PCD) have no way but reading them all."""
+    if req.path.suffix.lower() != ".ply" or not read_header(req.path).endian:
+        return None
+    from .ply_boxes import PlyBoxes
+
+    return PlyBoxes(req.path)
+
+
 READER = ReaderSpec(name="open3d_points", version=VERSION, params=PointsParams, read=_read_points,
-                    accepts=_accepts_points, extensions=(".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts"),
+                    accepts=_accepts_points, boxes=_boxes,
+                    extensions=(".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts"),
                     description="Point clouds: PLY and XYZ/XYZN/XYZRGB/PTS read and checked here, PCD through Open3D.")

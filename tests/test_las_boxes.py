@@ -3,6 +3,7 @@ the box, for many random boxes, with and without a class filter; and only the ch
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 
 import laspy
@@ -71,8 +72,10 @@ def _check_against_whole(source: boxes_io._ChunkedBoxes, path: Path, classes: li
 
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
 @pytest.mark.parametrize("classes", [None, [2, 6]])
+@pytest.mark.parametrize("sort_cells", [False, True])
 def test_a_las_box_holds_what_the_whole_read_puts_there(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                         suffix: str, classes: list[int] | None) -> None:
+                                                         suffix: str, classes: list[int] | None,
+                                                         sort_cells: bool) -> None:
     rng = np.random.default_rng(11)
     pts = _scan_like(60_000 if suffix == ".las" else 400_000, rng)  # laspy writes LAZ in chunks of 50,000
     path = tmp_path / f"scan{suffix}"
@@ -81,12 +84,18 @@ def test_a_las_box_holds_what_the_whole_read_puts_there(tmp_path: Path, monkeypa
     monkeypatch.setattr(boxes_io, "LAS_RUN", 4096)
     monkeypatch.setattr(las_io, "CHUNK_POINTS", 10_000)  # first-pass pieces across runs
     monkeypatch.setattr(boxes_io, "BOX_PIECE", 3000)  # a box's pieces shorter than a run
-    source = boxes_io.open_las_boxes(path, classes, ("intensity", "color", "classification"))
+    (tmp_path / "scratch").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "scratch"))  # where the scratch file goes
+    source = boxes_io.open_las_boxes(path, classes, ("intensity", "color", "classification"), sort_cells)
     try:
+        assert isinstance(source, boxes_io.LasBoxes)
         assert source.index.n_chunks == (len(pts) + source.run - 1) // source.run
+        assert (source.cache is not None) == sort_cells
+        assert len(list((tmp_path / "scratch").glob("gdt-cells-*/cells.bin"))) == int(sort_cells)
         share = _check_against_whole(source, path, classes, rng)
     finally:
         source.close()
+    assert not list((tmp_path / "scratch").iterdir())  # the scratch file goes with the source
     assert share < 0.45  # boxes of 0.1-12 % of the volume read a fifth of the chunks of a scan-ordered file
 
 
@@ -124,8 +133,9 @@ def test_the_reader_offers_box_reads_and_a_bad_file_names_itself(tmp_path: Path)
         boxes_io.open_las_boxes(cut, None, ())
 
 
-def test_a_binary_ply_box_holds_what_the_whole_read_puts_there(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-                                                                ) -> None:
+@pytest.mark.parametrize("sort_cells", [False, True])
+def test_a_binary_ply_box_holds_what_the_whole_read_puts_there(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                sort_cells: bool) -> None:
     import open3d as o3d
 
     import stages.io.ply_boxes as ply_boxes
@@ -136,7 +146,7 @@ def test_a_binary_ply_box_holds_what_the_whole_read_puts_there(tmp_path: Path, m
     path = tmp_path / "scan.ply"
     o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)), write_ascii=False)
     monkeypatch.setattr(ply_boxes, "PLY_RUN", 2048)
-    source = ply_boxes.PlyBoxes(path)
+    source = ply_boxes.PlyBoxes(path, sort_cells)
     whole = read_ply(path).vertices
     try:
         assert source.count == len(whole) and source.index.n_chunks == 25

@@ -21,6 +21,7 @@ import numpy as np
 from gdt_pipeline import BoxRead, InputError, ReadRequest
 
 from . import las as las_io
+from .cell_cache import CellCache, field_types
 from .chunk_index import CellGrid, ChunkIndex, in_box, runs
 
 # Records per run of an uncompressed LAS (seeking there is free) and of a LAZ whose chunks vary in size.
@@ -54,6 +55,7 @@ class _ChunkedBoxes:
 
     index: ChunkIndex
     colour_top: int
+    cache: CellCache | None = None
 
     def __init__(self, path: Path, classes: list[int] | None, attributes: tuple[str, ...]) -> None:
         self.path, self.classes, self.attributes = path, classes, attributes
@@ -96,6 +98,9 @@ class _ChunkedBoxes:
     def read_box(self, lower: np.ndarray, upper: np.ndarray) -> BoxRead:
         """The elements inside the closed box [lower, upper], numbered as the whole read numbers them."""
         lower, upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+        if self.cache is not None:
+            elements, xyz, raw = self.cache.read(lower, upper)
+            return BoxRead(elements, xyz, las_io.scaled_colour(raw, self.colour_top))
         numbers: list[np.ndarray] = []
         points: list[np.ndarray] = []
         fields: dict[str, list[np.ndarray]] = {}
@@ -134,6 +139,7 @@ class _ChunkedBoxes:
         kept_counts = np.zeros(n_chunks, np.int64)
         lower, upper = np.full(3, np.inf), np.full(3, -np.inf)
         self.colour_top = 0
+        self.cell_totals = np.zeros(n_cells, np.int64)
         for chunk_of, records in pieces:
             kept = self._kept(records)
             xyz = np.column_stack([np.asarray(records.x)[kept], np.asarray(records.y)[kept],
@@ -142,7 +148,9 @@ class _ChunkedBoxes:
             if len(xyz):
                 lower, upper = np.minimum(lower, xyz.min(axis=0)), np.maximum(upper, xyz.max(axis=0))
             if per_chunk_cells:
-                keys.append(np.unique(chunk_of[kept] * n_cells + grid.flat(grid.index3(xyz))))
+                point_cells = grid.flat(grid.index3(xyz))
+                keys.append(np.unique(chunk_of[kept] * n_cells + point_cells))
+                self.cell_totals += np.bincount(point_cells, minlength=n_cells)
             colour = las_io.attribute_rows(records, kept, self.attributes).get("color")
             if colour is not None:
                 self.colour_top = max(self.colour_top, int(np.max(colour, initial=0)))
@@ -157,9 +165,12 @@ class _ChunkedBoxes:
 
 
 class LasBoxes(_ChunkedBoxes):
-    """A LAS/LAZ file indexed by a first pass: runs of records and the grid cells they touch."""
+    """A LAS/LAZ file indexed by a first pass: runs of records and the grid cells they touch; with ``sort_cells``, a
+    second pass sorts its points by cell into a scratch file under ``scratch`` (the system's temporary folder by
+    default), which box reads then read instead."""
 
-    def __init__(self, path: Path, classes: list[int] | None, attributes: tuple[str, ...]) -> None:
+    def __init__(self, path: Path, classes: list[int] | None, attributes: tuple[str, ...], sort_cells: bool = False,
+                 scratch: Path | None = None) -> None:
         import laspy
 
         super().__init__(path, classes, attributes)
@@ -183,6 +194,30 @@ class LasBoxes(_ChunkedBoxes):
                 raise
             raise las_io.failure(path, "LAS/LAZ while indexing it", exc) from exc
         self.index = ChunkIndex.of(grid, cells, rows, kept, lower, upper)
+        if sort_cells:
+            self.cache = self._sorted(grid, scratch)
+
+    def _sorted(self, grid: CellGrid, scratch: Path | None) -> CellCache:
+        """The second pass: every kept point, its number and fields into its cell's rows of a scratch file."""
+        cache = CellCache(grid, self.cell_totals, field_types(self._no_fields()), scratch)
+        try:
+            element = 0
+            for _, records in self._all_pieces():
+                kept = self._kept(records)
+                xyz = np.column_stack([np.asarray(records.x)[kept], np.asarray(records.y)[kept],
+                                       np.asarray(records.z)[kept]])
+                cache.write(element + np.arange(len(kept)), xyz, las_io.attribute_rows(records, kept, self.attributes))
+                element += len(kept)
+            cache.check_full()
+        except BaseException as exc:
+            cache.close()
+            self.close()
+            if isinstance(exc, InputError):
+                if str(self.path) in str(exc):
+                    raise
+                raise InputError(f"{self.path}: {exc}") from exc
+            raise las_io.failure(self.path, "LAS/LAZ while sorting it by cell", exc) from exc
+        return cache
 
     def _all_pieces(self) -> Iterator[tuple[np.ndarray, Any]]:
         read = 0
@@ -222,7 +257,10 @@ class LasBoxes(_ChunkedBoxes):
         return self.reader.header
 
     def close(self) -> None:
-        """Let go of the file."""
+        """Let go of the file (and remove the scratch file)."""
+        if self.cache is not None:
+            self.cache.close()
+            self.cache = None
         self.reader.close()
 
 
@@ -300,12 +338,16 @@ class CopcBoxes(_ChunkedBoxes):
         self.reader.source.close()
 
 
-def open_las_boxes(path: Path, classes: list[int] | None, attributes: tuple[str, ...]) -> LasBoxes | CopcBoxes:
-    """A LAS/LAZ or COPC file opened for box reads (a COPC file through its octree, any other through a first pass)."""
-    header = las_io.las_header(path)
-    return (CopcBoxes if _is_copc(header) else LasBoxes)(path, classes, attributes)
+def open_las_boxes(path: Path, classes: list[int] | None, attributes: tuple[str, ...], sort_cells: bool = False
+                   ) -> LasBoxes | CopcBoxes:
+    """A LAS/LAZ or COPC file opened for box reads: a COPC file through its octree, any other through a first pass
+    (and, with ``sort_cells``, a second that sorts its points by cell into a scratch file)."""
+    if _is_copc(las_io.las_header(path)):
+        return CopcBoxes(path, classes, attributes)
+    return LasBoxes(path, classes, attributes, sort_cells)
 
 
 def las_boxes(req: ReadRequest) -> LasBoxes | CopcBoxes:
-    """The reader's ``boxes``: the request's file opened for box reads, with its params' filter and attributes."""
-    return open_las_boxes(req.path, req.params.classes, tuple(req.params.attributes))
+    """The reader's ``boxes``: the request's file opened for box reads, with its params' filter and attributes; a
+    LAS/LAZ sorted by cell, since scanners write scan order, in which a tile touches a third of a file's runs."""
+    return open_las_boxes(req.path, req.params.classes, tuple(req.params.attributes), sort_cells=True)

@@ -15,6 +15,7 @@ import numpy as np
 
 from gdt_pipeline import BoxRead, InputError
 
+from .cell_cache import CellCache
 from .chunk_index import CellGrid, ChunkIndex, in_box, runs
 from .ply import row_dtype
 from .ply_header import read_header
@@ -24,9 +25,10 @@ PLY_RUN = 65_536
 
 
 class PlyBoxes:
-    """A binary PLY whose rows are all vertices of one fixed size (a point cloud), indexed by a first pass."""
+    """A binary PLY whose rows are all vertices of one fixed size (a point cloud), indexed by a first pass; with
+    ``sort_cells``, its points sorted by cell into a scratch file under ``scratch``, which box reads then read."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, sort_cells: bool = False, scratch: Path | None = None) -> None:
         self.path = path
         header = read_header(path)
         if not header.endian or [el.name for el in header.elements] != ["vertex"] or not header.elements[0].fixed:
@@ -44,7 +46,10 @@ class PlyBoxes:
                              f"byte {self.offset}, but the file is {size} bytes: the header's count does not describe "
                              f"the data")
         self.file: BinaryIO = open(path, "rb")  # noqa: SIM115 - held for the box reads, closed by close()
+        self.cache: CellCache | None = None
         self.index = self._indexed()
+        if sort_cells:
+            self.cache = self._sorted(scratch)
 
     @property
     def count(self) -> int:
@@ -87,14 +92,37 @@ class PlyBoxes:
         if not np.all(np.isfinite(lower)):
             lower = upper = np.zeros(3)
         grid = CellGrid.over(lower, upper)
-        cells = [np.unique(grid.flat(grid.index3(self._xyz(k * PLY_RUN, min(PLY_RUN, self.total - k * PLY_RUN)))))
-                 for k in range(n_runs)]
+        self.cell_totals = np.zeros(int(np.prod(grid.shape)), np.int64)
+        cells = []
+        for k in range(n_runs):
+            point_cells = grid.flat(grid.index3(self._xyz(k * PLY_RUN, min(PLY_RUN, self.total - k * PLY_RUN))))
+            self.cell_totals += np.bincount(point_cells, minlength=len(self.cell_totals))
+            cells.append(np.unique(point_cells))
         rows = np.array([min(PLY_RUN, self.total - k * PLY_RUN) for k in range(n_runs)], np.int64)
         return ChunkIndex.of(grid, cells, rows, rows, lower, upper)
+
+    def _sorted(self, scratch: Path | None) -> CellCache:
+        """A third read of the rows: each into its cell's rows of a scratch file."""
+        cache = CellCache(self.index.grid, self.cell_totals, {}, scratch)
+        try:
+            for row in range(0, self.total, PLY_RUN):
+                n = min(PLY_RUN, self.total - row)
+                cache.write(row + np.arange(n), self._xyz(row, n), {})
+            cache.check_full()
+        except BaseException as exc:
+            cache.close()
+            self.file.close()
+            if isinstance(exc, InputError) and str(self.path) not in str(exc):
+                raise InputError(f"{self.path}: {exc}") from exc
+            raise
+        return cache
 
     def read_box(self, lower: np.ndarray, upper: np.ndarray) -> BoxRead:
         """The vertices inside the closed box [lower, upper], numbered by their row."""
         lower, upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+        if self.cache is not None:
+            elements, xyz, _ = self.cache.read(lower, upper)
+            return BoxRead(elements, xyz)
         numbers, points = [], []
         for first, last in runs(self.index.chunks(lower, upper)):
             start = int(self.index.rows[first])
@@ -107,5 +135,8 @@ class PlyBoxes:
                        np.concatenate(points) if points else np.zeros((0, 3)))
 
     def close(self) -> None:
-        """Let go of the file."""
+        """Let go of the file (and remove the scratch file)."""
+        if self.cache is not None:
+            self.cache.close()
+            self.cache = None
         self.file.close()

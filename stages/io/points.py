@@ -187,12 +187,13 @@ def _read_points(req: ReadRequest) -> Dataset:
 
 
 def _boxes(req: ReadRequest) -> Any:
-    """A binary PLY point cloud opened for box reads; other formats (text, PCD) have no way but reading them all."""
+    """A binary PLY point cloud opened for box reads, sorted by cell (scanners write scan order); other formats
+    (text, PCD) have no way but reading them all."""
     if req.path.suffix.lower() != ".ply" or not read_header(req.path).endian:
         return None
     from .ply_boxes import PlyBoxes
 
-    return PlyBoxes(req.path)
+    return PlyBoxes(req.path, sort_cells=True)
 
 
 READER = ReaderSpec(name="open3d_points", version=VERSION, params=PointsParams, read=_read_points,

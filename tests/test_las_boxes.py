@@ -169,3 +169,21 @@ def test_a_binary_ply_box_holds_what_the_whole_read_puts_there(tmp_path: Path, m
                              write_ascii=True)
     with pytest.raises(InputError, match=r"text\.ply: box reads need a binary PLY"):
         ply_boxes.PlyBoxes(tmp_path / "text.ply")
+
+
+def test_sorting_by_cell_on_a_full_disk_says_so_and_leaves_nothing(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    import shutil
+
+    import stages.io.cell_cache as cell_cache
+
+    rng = np.random.default_rng(15)
+    pts = _scan_like(20_000, rng)
+    path = tmp_path / "scan.las"
+    _write_las(path, pts, np.full(len(pts), 2, np.uint8), np.zeros((len(pts), 3), np.uint16))
+    (tmp_path / "scratch").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "scratch"))
+    monkeypatch.setattr(cell_cache.shutil, "disk_usage", lambda _: shutil._ntuple_diskusage(10**9, 10**9, 1000))
+    with pytest.raises(InputError, match=r"scan\.las: .*gdt-cells-.*needs 1 MB of scratch space, 0 MB are free"):
+        boxes_io.open_las_boxes(path, None, ("intensity",), sort_cells=True)
+    assert not list((tmp_path / "scratch").iterdir())

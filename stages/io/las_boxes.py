@@ -199,7 +199,11 @@ class LasBoxes(_ChunkedBoxes):
 
     def _sorted(self, grid: CellGrid, scratch: Path | None) -> CellCache:
         """The second pass: every kept point, its number and fields into its cell's rows of a scratch file."""
-        cache = CellCache(grid, self.cell_totals, field_types(self._no_fields()), scratch)
+        try:
+            cache = CellCache(grid, self.cell_totals, field_types(self._no_fields()), scratch)
+        except InputError as exc:
+            self.close()
+            raise InputError(f"{self.path}: {exc}") from exc
         try:
             element = 0
             for _, records in self._all_pieces():

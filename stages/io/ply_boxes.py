@@ -103,7 +103,11 @@ class PlyBoxes:
 
     def _sorted(self, scratch: Path | None) -> CellCache:
         """A third read of the rows: each into its cell's rows of a scratch file."""
-        cache = CellCache(self.index.grid, self.cell_totals, {}, scratch)
+        try:
+            cache = CellCache(self.index.grid, self.cell_totals, {}, scratch)
+        except InputError as exc:
+            self.file.close()
+            raise InputError(f"{self.path}: {exc}") from exc
         try:
             for row in range(0, self.total, PLY_RUN):
                 n = min(PLY_RUN, self.total - row)

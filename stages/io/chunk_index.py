@@ -101,6 +101,27 @@ class ChunkIndex:
         return np.unique(picked)
 
 
+class Indexed:
+    """What a box source tells of itself from its index: how many elements, and their extent."""
+
+    index: ChunkIndex
+
+    @property
+    def count(self) -> int:
+        """Elements after the reader's filter."""
+        return self.index.count
+
+    @property
+    def lower(self) -> np.ndarray:
+        """The lower corner of the elements' extent."""
+        return self.index.lower
+
+    @property
+    def upper(self) -> np.ndarray:
+        """The upper corner of the elements' extent."""
+        return self.index.upper
+
+
 def runs(chunks: np.ndarray) -> list[tuple[int, int]]:
     """Sorted chunk numbers as runs [first, last + 1) of consecutive chunks (one seek and read each)."""
     if len(chunks) == 0:

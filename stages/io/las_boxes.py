@@ -22,7 +22,7 @@ from gdt_pipeline import BoxRead, InputError, ReadRequest
 
 from . import las as las_io
 from .cell_cache import CellCache, field_types
-from .chunk_index import CellGrid, ChunkIndex, in_box, runs
+from .chunk_index import CellGrid, ChunkIndex, Indexed, in_box, runs
 
 # Records per run of an uncompressed LAS (seeking there is free) and of a LAZ whose chunks vary in size.
 LAS_RUN = 65_536
@@ -46,11 +46,16 @@ def _laz_chunk_size(path: Path) -> int | None:
     return None if size in (_VARIABLE, 0) else size
 
 
+def _kept_xyz(records: Any, kept: np.ndarray) -> np.ndarray:
+    """(N,3) scaled coordinates of the kept records."""
+    return np.column_stack([np.asarray(records.x)[kept], np.asarray(records.y)[kept], np.asarray(records.z)[kept]])
+
+
 def _is_copc(header: Any) -> bool:
     return bool(header.vlrs) and type(header.vlrs[0]).__name__ == "CopcInfoVlr"
 
 
-class _ChunkedBoxes:
+class _ChunkedBoxes(Indexed):
     """What LAS and COPC box reads share: the index, the filter, and turning a run of records into a box's part."""
 
     index: ChunkIndex
@@ -59,21 +64,6 @@ class _ChunkedBoxes:
 
     def __init__(self, path: Path, classes: list[int] | None, attributes: tuple[str, ...]) -> None:
         self.path, self.classes, self.attributes = path, classes, attributes
-
-    @property
-    def count(self) -> int:
-        """Elements after the class filter."""
-        return self.index.count
-
-    @property
-    def lower(self) -> np.ndarray:
-        """The lower corner of the elements' extent."""
-        return self.index.lower
-
-    @property
-    def upper(self) -> np.ndarray:
-        """The upper corner of the elements' extent."""
-        return self.index.upper
 
     def _records(self, first: int, last: int) -> Iterator[Any]:
         """The point records of chunks [first, last), in file order, a bounded piece at a time."""
@@ -109,8 +99,7 @@ class _ChunkedBoxes:
                 element = int(self.index.elements[first])
                 for records in self._records(first, last):
                     kept = self._kept(records)
-                    xyz = np.column_stack([np.asarray(records.x)[kept], np.asarray(records.y)[kept],
-                                           np.asarray(records.z)[kept]])
+                    xyz = _kept_xyz(records, kept)
                     inside = in_box(xyz, lower, upper)
                     numbers.append(element + np.flatnonzero(inside))
                     points.append(xyz[inside])
@@ -142,8 +131,7 @@ class _ChunkedBoxes:
         self.cell_totals = np.zeros(n_cells, np.int64)
         for chunk_of, records in pieces:
             kept = self._kept(records)
-            xyz = np.column_stack([np.asarray(records.x)[kept], np.asarray(records.y)[kept],
-                                   np.asarray(records.z)[kept]])
+            xyz = _kept_xyz(records, kept)
             kept_counts += np.bincount(chunk_of[kept], minlength=n_chunks)
             if len(xyz):
                 lower, upper = np.minimum(lower, xyz.min(axis=0)), np.maximum(upper, xyz.max(axis=0))
@@ -151,7 +139,8 @@ class _ChunkedBoxes:
                 point_cells = grid.flat(grid.index3(xyz))
                 keys.append(np.unique(chunk_of[kept] * n_cells + point_cells))
                 self.cell_totals += np.bincount(point_cells, minlength=n_cells)
-            colour = las_io.attribute_rows(records, kept, self.attributes).get("color")
+            wanted = ("color",) if "color" in self.attributes else ()
+            colour = las_io.attribute_rows(records, kept, wanted).get("color")
             if colour is not None:
                 self.colour_top = max(self.colour_top, int(np.max(colour, initial=0)))
         cells: list[np.ndarray] = []
@@ -208,8 +197,7 @@ class LasBoxes(_ChunkedBoxes):
             element = 0
             for _, records in self._all_pieces():
                 kept = self._kept(records)
-                xyz = np.column_stack([np.asarray(records.x)[kept], np.asarray(records.y)[kept],
-                                       np.asarray(records.z)[kept]])
+                xyz = _kept_xyz(records, kept)
                 cache.write(element + np.arange(len(kept)), xyz, las_io.attribute_rows(records, kept, self.attributes))
                 element += len(kept)
             cache.check_full()

@@ -16,7 +16,7 @@ import numpy as np
 from gdt_pipeline import BoxRead, InputError
 
 from .cell_cache import CellCache
-from .chunk_index import CellGrid, ChunkIndex, in_box, runs
+from .chunk_index import CellGrid, ChunkIndex, Indexed, in_box, runs
 from .ply import row_dtype
 from .ply_header import read_header
 
@@ -24,7 +24,7 @@ from .ply_header import read_header
 PLY_RUN = 65_536
 
 
-class PlyBoxes:
+class PlyBoxes(Indexed):
     """A binary PLY whose rows are all vertices of one fixed size (a point cloud), indexed by a first pass; with
     ``sort_cells``, its points sorted by cell into a scratch file under ``scratch``, which box reads then read."""
 
@@ -50,21 +50,6 @@ class PlyBoxes:
         self.index = self._indexed()
         if sort_cells:
             self.cache = self._sorted(scratch)
-
-    @property
-    def count(self) -> int:
-        """The vertices the file holds."""
-        return self.total
-
-    @property
-    def lower(self) -> np.ndarray:
-        """The lower corner of the vertices' extent."""
-        return self.index.lower
-
-    @property
-    def upper(self) -> np.ndarray:
-        """The upper corner of the vertices' extent."""
-        return self.index.upper
 
     def _xyz(self, first_row: int, rows: int) -> np.ndarray:
         self.file.seek(self.offset + first_row * self.row.itemsize)

@@ -134,6 +134,38 @@ def test_candidates_merge_into_element_order_with_their_mixture_rows() -> None:
         assert np.array_equal(merged.element[where[k]], part.element)
 
 
+
+@pytest.mark.parametrize("query_model", ["gaussian", "student", "box"])
+def test_a_releasing_merge_places_every_candidate_as_concatenating_and_sorting_does(query_model: str) -> None:
+    rng = np.random.default_rng(17)
+    n, m = 60, 150
+    sigma = rng.uniform(0.001, 0.01, m)
+    query_u = {"gaussian": GaussianUncertainty.isotropic(sigma), "student": GaussianUncertainty.isotropic(sigma, 3.0),
+               "box": BoxUncertainty(np.repeat(sigma[:, None], 3, axis=1))}[query_model]
+    mix = MixtureUncertainty(np.ones((m, 1)), np.zeros((m, 1, 3)), np.broadcast_to(np.eye(3), (m, 1, 3, 3)) *
+                             rng.uniform(1, 2, (m, 1, 1, 1)))
+    whole = element_ordered(Correspondences(
+        0, rng.integers(0, 3, m), rng.integers(0, 500, m), rng.normal(size=(m, 3)), rng.uniform(size=m), "test",
+        element=rng.integers(0, n, m), n_elements=n, query_position=rng.normal(size=(m, 3)),
+        query_uncertainty=query_u, ref_uncertainty=mix, ref_row=np.where(rng.uniform(size=m) < 0.5, np.arange(m), -1)))
+    same = [lambda e: e] * 3
+    tile_of = rng.integers(0, 3, n)  # three "tiles" of random elements
+    parts = [take_candidates(whole, tile_of[whole.element] == k, lambda e: e, same, n) for k in range(3)]
+    kept, kept_where = merge_correspondences(list(parts), n, 0)
+    handed = list(parts)
+    merged, where = merge_correspondences(handed, n, 0, release=True)
+    assert handed == []  # the merge let go of the tiles' candidates
+    for a, b in zip(where, kept_where, strict=True):
+        assert np.array_equal(a, b)
+    for name in ("element", "ref_item", "ref_element", "position", "distance", "query_position"):
+        assert np.array_equal(getattr(merged, name), getattr(whole, name)), name
+    assert np.array_equal(merged.ref_row, kept.ref_row)  # rows of the joined mixtures, numbered as the tiles' join
+    assert type(merged.query_uncertainty) is type(query_u)
+    assert np.array_equal(merged.query_uncertainty.covariance(m), whole.query_uncertainty.covariance(m))
+    assert getattr(merged.query_uncertainty, "dof", None) == getattr(query_u, "dof", None)
+    used = merged.ref_row >= 0
+    assert np.array_equal(merged.ref_uncertainty.covs[merged.ref_row[used]], mix.covs[whole.ref_row[used]])
+
 def test_correspondences_leave_a_stage_in_stable_element_order() -> None:
     corr = Correspondences(0, np.zeros(5, np.int64), np.arange(5), np.zeros((5, 3)), np.arange(5.0), "t",
                            element=np.array([2, 0, 2, 1, 0]), n_elements=3)

@@ -240,7 +240,10 @@ def _merge(slots: dict[str, Any], members: dict[int, list[np.ndarray]], results:
     if "correspondences" in provides:
         merged = []
         for d, ds in enumerate(recent):
-            corr, maps[d] = merge_correspondences([r.slots["correspondences"][d] for r in results], ds.n_elements, d)
+            pieces = [r.slots["correspondences"][d] for r in results]
+            for r in results:  # the merge lets go of each tile's candidates as it places them
+                r.slots["correspondences"][d] = None
+            corr, maps[d] = merge_correspondences(pieces, ds.n_elements, d, release=True)
             merged.append(corr)
         out["correspondences"] = merged
     if "scores" in provides:

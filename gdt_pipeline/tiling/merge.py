@@ -95,16 +95,20 @@ def merge_recent(ds: Dataset, pieces: Sequence[Dataset | UncertaintyPiece], orde
     return dataclasses.replace(ds, uncertainty=unc)
 
 
-def merge_correspondences(pieces: Sequence[Correspondences], n_elements: int, query: int
+def merge_correspondences(pieces: list[Correspondences], n_elements: int, query: int, release: bool = False
                           ) -> tuple[Correspondences, list[np.ndarray]]:
-    """The tiles' core candidates in element order, and per tile where each of its candidates went."""
+    """The tiles' core candidates in element order, and per tile where each of its candidates went (``release``:
+    empty ``pieces`` as they are merged, ``Correspondences.scattered``)."""
     sizes = [len(p.ref_item) for p in pieces]
-    joined = Correspondences.concat(pieces, query, n_elements)
-    order = np.argsort(joined.element, kind="stable")
+    elements = np.concatenate([p.element for p in pieces]) if pieces else np.zeros(0, np.int64)
+    order = np.argsort(elements, kind="stable")
+    del elements
     where = np.empty(len(order), dtype=np.int64)
     where[order] = np.arange(len(order))
+    del order
     offsets = np.r_[0, np.cumsum(sizes)]
-    return joined.take(order), [where[offsets[i]:offsets[i + 1]] for i in range(len(pieces))]
+    maps = [where[offsets[i]:offsets[i + 1]] for i in range(len(pieces))]
+    return Correspondences.scattered(pieces, maps, query, n_elements, release), maps
 
 
 def _p_values(pieces: Sequence[Scores] | Sequence[Change], order: ElementOrder) -> np.ndarray | None:

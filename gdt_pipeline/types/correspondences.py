@@ -15,8 +15,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import GdtError
+from ..memory import return_freed_memory
 from .arrays import frozen_array
-from .uncertainty import Uncertainty, concat_uncertainty
+from .uncertainty import GaussianUncertainty, Uncertainty, concat_uncertainty
 
 # a field with one row per candidate; ``rows_of`` names the field whose rows its values index (−1: none)
 PER_CANDIDATE: dict[str, Any] = {"per": "candidate"}
@@ -133,6 +134,39 @@ class Correspondences:
                           distance=np.zeros(0), element=np.zeros(0, np.int64))
         return kind(**values)
 
+    @classmethod
+    def scattered(cls, pieces: list[Correspondences], where: Sequence[np.ndarray], query: int, n_elements: int,
+                  release: bool = False) -> Correspondences:
+        """The candidates of ``pieces``, candidate j of piece i at ``where[i][j]`` (a permutation of all of them):
+        ``concat`` then ``take`` without the joined copy. ``release`` empties ``pieces`` and lets go of each piece's
+        field once it is in place, so that a run merging tiles holds the merged candidates and the rest of the
+        tiles', not both in full (three copies with ``concat`` and ``take``)."""
+        if not pieces:
+            return cls.concat(pieces, query, n_elements)
+        sizes = [len(p.ref_item) for p in pieces]
+        kind = type(pieces[0])
+        values: dict[str, Any] = {"query": query, "n_elements": n_elements, "method": pieces[0].method}
+        columns: dict[str, list[Any]] = {}
+        for f in dataclasses.fields(kind):
+            if f.name in values or not _per_candidate(f):
+                continue
+            parts = [getattr(p, f.name) for p in pieces]
+            if all(v is None for v in parts):
+                continue
+            if "rows_of" in f.metadata:
+                values[f.metadata["rows_of"]], rows = _joined_rows(pieces, f.metadata["rows_of"], f.name)
+                parts = np.split(rows, np.cumsum(sizes)[:-1])
+            elif any(v is None for v in parts):
+                raise GdtError(f"tiles disagree on whether candidates carry {f.name!r}")
+            columns[f.name] = parts
+        if release:
+            pieces.clear()
+        for name, parts in columns.items():
+            values[name] = _scatter(parts, where, sum(sizes))
+            if release:
+                return_freed_memory()  # the pieces' pages of this field, before the next field's are taken
+        return kind(**values)
+
 
 def _joined_rows(pieces: Sequence[Correspondences], rows_of: str, name: str) -> tuple[Any, np.ndarray]:
     """The row models of the pieces that have them, joined, and every piece's row indices offset into the join."""
@@ -147,3 +181,27 @@ def _joined_rows(pieces: Sequence[Correspondences], rows_of: str, name: str) -> 
         rows.append(np.where(index >= 0, index + offset, -1))
         offset += model.rows
     return concat_uncertainty(models, [m.rows for m in models]), np.concatenate(rows)
+
+
+def _scatter(parts: list[Any], where: Sequence[np.ndarray], total: int) -> Any:
+    """One per-candidate field of the pieces put in place (each piece's part let go once written)."""
+    first = parts[0]
+    if isinstance(first, np.ndarray):
+        out = np.empty((total, *first.shape[1:]), dtype=np.result_type(*parts))
+        for i, rows in enumerate(where):
+            out[rows] = parts[i]
+            parts[i] = None
+        return out
+    if isinstance(first, GaussianUncertainty) and all(
+            isinstance(u, GaussianUncertainty) and u.rows == len(rows) and u.dof == first.dof
+            for u, rows in zip(parts, where, strict=True)):
+        cov = np.empty((total, 3, 3))
+        for i, rows in enumerate(where):
+            cov[rows] = parts[i].cov
+            parts[i] = None
+        cov.setflags(write=False)
+        return GaussianUncertainty.trusted(cov, first.dof)
+    joined = concat_uncertainty(parts, [len(rows) for rows in where])  # other models: joined, then ordered
+    order = np.empty(total, dtype=np.int64)
+    order[np.concatenate(where)] = np.arange(total)
+    return joined.take(order)

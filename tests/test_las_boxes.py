@@ -91,7 +91,7 @@ def test_a_las_box_holds_what_the_whole_read_puts_there(tmp_path: Path, monkeypa
         assert isinstance(source, boxes_io.LasBoxes)
         assert source.index.n_chunks == (len(pts) + source.run - 1) // source.run
         assert (source.cache is not None) == sort_cells
-        assert len(list((tmp_path / "scratch").glob("gdt-cells-*/cells.bin"))) == int(sort_cells)
+        assert not list((tmp_path / "scratch").iterdir())  # the scratch file has no name: a kill leaves nothing
         share = _check_against_whole(source, path, classes, rng)
     finally:
         source.close()
@@ -184,6 +184,33 @@ def test_sorting_by_cell_on_a_full_disk_says_so_and_leaves_nothing(tmp_path: Pat
     (tmp_path / "scratch").mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "scratch"))
     monkeypatch.setattr(cell_cache.shutil, "disk_usage", lambda _: shutil._ntuple_diskusage(10**9, 10**9, 1000))
-    with pytest.raises(InputError, match=r"scan\.las: .*gdt-cells-.*needs 1 MB of scratch space, 0 MB are free"):
+    with pytest.raises(InputError, match=r"scan\.las: .*scratch: sorting .*needs 1 MB of scratch space, 0 MB are free"):
         boxes_io.open_las_boxes(path, None, ("intensity",), sort_cells=True)
     assert not list((tmp_path / "scratch").iterdir())
+
+
+def test_a_run_killed_while_its_points_sit_sorted_on_disk_leaves_no_scratch_file(tmp_path: Path) -> None:
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(16)
+    pts = _scan_like(30_000, rng)
+    path = tmp_path / "scan.las"
+    _write_las(path, pts, np.full(len(pts), 2, np.uint8), np.zeros((len(pts), 3), np.uint16))
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    code = ("import pathlib, time, stages.io.las_boxes as b\n"
+            f"s = b.open_las_boxes(pathlib.Path({str(path)!r}), None, ('intensity',), sort_cells=True)\n"
+            "assert s.cache is not None and len(s.read_box(s.lower, s.upper).elements) == 30000\n"
+            "print('open', flush=True)\ntime.sleep(60)\n")
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                             env={**os.environ, "TMPDIR": str(scratch)}, cwd=Path(__file__).resolve().parents[1])
+    try:
+        assert child.stdout.readline().strip() == "open"  # sorted into its scratch file, which it still holds
+        child.send_signal(signal.SIGKILL)
+        child.wait(30)
+    finally:
+        child.kill()
+    assert not list(scratch.iterdir())

@@ -74,12 +74,13 @@ def confirmed(ctx: StageContext, reference: Composite) -> list[np.ndarray]:
             out[item][corr.ref_element[won][corr.ref_item[won] == item]] = True
     # a known point another recent point won can still lie within an unchanged recent point's noise: tested too
     recent = [(ds, ch) for ds, ch in zip(ctx["recent"], ctx.get("change") or [], strict=False) if ds.uncertainty]
-    if recent:
+    known_points = [it.dataset.faces is None and it.dataset.uncertainty is not None for it in reference.items]
+    if recent and any(known_points):  # against CAD alone the unchanged cloud (96 B a point) and its tree serve none
         cloud = np.concatenate([ds.element_positions()[ch.state == ChangeState.UNCHANGED] for ds, ch in recent])
         cloud_cov = np.concatenate([ds.element_covariance()[ch.state == ChangeState.UNCHANGED] for ds, ch in recent])
         tree = cKDTree(cloud) if len(cloud) else None
         for i, it in enumerate(reference.items):
-            if tree is not None and it.dataset.faces is None and it.dataset.uncertainty is not None:
+            if tree is not None and known_points[i]:
                 out[i] |= within_pair_region(it.dataset.points, it.dataset.element_covariance(), cloud, cloud_cov,
                                              tree)
     return out

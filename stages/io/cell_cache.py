@@ -5,7 +5,8 @@ A scanner writes its points in scan order: a run of 50,000 records is a thin wed
 and a tile of a tenth of a room touches a third of the runs (``docs/scale.md``). A second pass over the file writes
 each point, its element number and its fields into the cell's slot of one scratch file (an external bucket sort:
 the first pass counted the cells), then a box reads the rows of the cells it overlaps. Rows are written with
-``os.pwrite`` and read with ``np.fromfile``, so the process holds one piece of the file at a time, never a map of it.
+``os.pwrite`` and read with ``os.pread``, so the process holds one piece of the file at a time, never a map of it. The
+scratch file has no name in the folder (``O_TMPFILE``), so a run that is killed leaves none behind.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from .chunk_index import CellGrid, in_box
 
 
 class CellCache:
-    """Rows sorted by cell in ``path``: ``starts[c]`` the first row of cell c (with the total at the end)."""
+    """Rows sorted by cell in a scratch file in ``folder``: ``starts[c]`` the first row of cell c (with the total at
+    the end)."""
 
     def __init__(self, grid: CellGrid, counts: np.ndarray, fields: dict[str, tuple[np.dtype, tuple[int, ...]]],
                  folder: Path | None = None) -> None:
@@ -33,14 +35,14 @@ class CellCache:
                              *((name, dt, shape) for name, (dt, shape) in fields.items())])
         self.starts = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)])
         need = int(self.starts[-1]) * self.row.itemsize
-        self.folder = Path(tempfile.mkdtemp(prefix="gdt-cells-", dir=folder))
+        self.folder = Path(folder or tempfile.gettempdir())
         free = shutil.disk_usage(self.folder).free
         if need > free:
-            shutil.rmtree(self.folder, ignore_errors=True)
             raise InputError(f"{self.folder}: sorting the points by cell needs {need / 2**20:,.0f} MB of scratch "
                              f"space, {free / 2**20:,.0f} MB are free (set TMPDIR to a larger disk)")
-        self.path = self.folder / "cells.bin"
-        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+        # a file without a name (O_TMPFILE): whatever kills the run, the kernel frees it with the last descriptor
+        self._file = tempfile.TemporaryFile(prefix="gdt-cells-", dir=self.folder)  # noqa: SIM115 (closed in close)
+        self.fd = self._file.fileno()
         os.ftruncate(self.fd, need)
         self._cursor = self.starts[:-1].copy()
 
@@ -75,7 +77,8 @@ class CellCache:
         for run in np.split(cells, breaks):
             start, stop = int(self.starts[run[0]]), int(self.starts[run[-1] + 1])
             if stop > start:
-                rows = np.fromfile(self.path, dtype=self.row, count=stop - start, offset=start * self.row.itemsize)
+                size = self.row.itemsize
+                rows = np.frombuffer(os.pread(self.fd, (stop - start) * size, start * size), dtype=self.row)
                 parts.append(rows[in_box(rows["xyz"], lower, upper)])
         rows = np.concatenate(parts) if parts else np.zeros(0, self.row)
         rows = rows[np.argsort(rows["element"], kind="stable")]
@@ -83,9 +86,8 @@ class CellCache:
         return rows["element"].copy(), rows["xyz"].copy(), {n: rows[n].copy() for n in names}
 
     def close(self) -> None:
-        """Remove the scratch file."""
-        os.close(self.fd)
-        shutil.rmtree(self.folder, ignore_errors=True)
+        """Let go of the scratch file (it has no name to remove)."""
+        self._file.close()
 
 
 def field_types(sample: dict[str, np.ndarray]) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
 import time
@@ -112,14 +111,6 @@ def _tiles(lower: np.ndarray, upper: np.ndarray, count: int, tile_points: int) -
             for i in range(shape[0]) for j in range(shape[1]) for k in range(shape[2])]
 
 
-def _peak_rss_mb() -> float:
-    """This process's peak resident set (VmHWM): ``ru_maxrss`` would carry the parent's peak across fork and exec."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
 def _rows_read(source: Any, lower: np.ndarray, upper: np.ndarray) -> int:
     """Rows a box read decodes: the runs or nodes it reads, or with a cell-sorted scratch file its cells' rows."""
     if source.cache is not None:
@@ -131,10 +122,11 @@ def _rows_read(source: Any, lower: np.ndarray, upper: np.ndarray) -> int:
 
 def measure(path: Path, way: str, tile_points: int) -> dict[str, object]:
     """One way of reading ``path``, in this process (run as a child, so that its peak RSS is its own)."""
+    from gdt_pipeline.memory import peak_rss_mb
     from stages.io.las import read_las
     from stages.io.las_boxes import open_las_boxes
 
-    base = _peak_rss_mb()
+    base = peak_rss_mb()
     start = time.perf_counter()
     out: dict[str, object] = {}
     if way == "whole":
@@ -161,7 +153,7 @@ def measure(path: Path, way: str, tile_points: int) -> dict[str, object]:
                    tile_points_read=total, largest_tile=largest, tile_median_s=float(np.median(times)),
                    read_per_returned=read / max(total, 1))
     out["seconds"] = time.perf_counter() - start
-    out["peak_rss_mb"] = _peak_rss_mb()
+    out["peak_rss_mb"] = peak_rss_mb()
     out["start_rss_mb"] = base
     return out
 

@@ -11,7 +11,9 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
+import resource
 from collections.abc import Callable
+from pathlib import Path
 
 
 @functools.cache
@@ -29,3 +31,15 @@ def return_freed_memory() -> None:
     trim = _trim()
     if trim is not None:
         trim(0)
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident set in MB: VmHWM, which restarts at ``exec`` (``ru_maxrss`` carries the peak of
+    the process that forked this one, such as a large test or bench process, across it)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

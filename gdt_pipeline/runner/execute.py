@@ -19,7 +19,6 @@ import json
 import logging
 import os
 import platform
-import resource
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -32,6 +31,7 @@ import numpy as np
 from twin_store import RUN_LOCK_NAME, TwinStore, TwinStoreError, fault, writer_lock
 
 from ..errors import GdtError
+from ..memory import peak_rss_mb
 from ..names import UNITS
 from ..plugins import NullProgress, Progress, Registry, StageContext, StageSpec, TileExecutor, load_registry
 from ..provenance import (
@@ -336,7 +336,7 @@ def _stage_record(run: _RunContext, epoch: EpochPlan, stage: StagePlan, digests:
     _, seed = stage_rng(run.plan.seed, epoch.index, s_index)
     key = cache_key(spec, params, digests, upstream)
     # the process's peak RSS so far: where an epoch's memory goes, stage by stage (workers' own are not in it)
-    peak_mb = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    peak_mb = round(peak_rss_mb(), 1)
     log.info("stage done", extra={"event": {"epoch": epoch.id, "stage": spec.name, "index": s_index,
                                             "seconds": round(seconds, 4), "cache_key": key, "peak_rss_mb": peak_mb}})
     upstream.append(key)

@@ -3,7 +3,8 @@
 The scene is the speed benchmark's (``speed_scene``: the counter CAD part with a block added, four structured-light
 stations). Per size and way of running, ``gdt run`` in a child process, after one untimed warm-up run that compiles
 the kernels; printed: wall seconds, points/s, the peak of the summed RSS of the whole process tree (the run, its
-pool or Dask workers and scheduler; sampled every 0.2 s), bytes per point, the tiles and the seconds per stage.
+pool or Dask workers and scheduler; sampled every 0.2 s), bytes per point of the tree and of the main process alone
+(its VmHWM, from the run's log), the tiles and the seconds per stage.
 
     .venv/bin/python bench/scale.py [--sizes 1000000,10000000,50000000] [--ways whole,serial,processes,dask]
         [--tile-elements 500000] [--workers 2] [--repeats 1]
@@ -88,6 +89,14 @@ def stage_seconds(log: Path) -> dict[str, float]:
     return out
 
 
+def main_peak_mb(log: Path) -> float | None:
+    """The peak RSS (MB) of the process that ran ``gdt run`` itself, workers not counted: the largest VmHWM its
+    stage records logged."""
+    peaks = [json.loads(line).get("peak_rss_mb") for line in log.read_text().splitlines()] if log.exists() else []
+    peaks = [p for p in peaks if p is not None]
+    return max(peaks) if peaks else None
+
+
 def tiles_of(twin: Path) -> int | None:
     """How many tiles the E1 correspondence stage ran in (None for a whole run)."""
     from twin_store import TwinStore
@@ -108,6 +117,7 @@ def run_way(folder: Path, way: str, args: argparse.Namespace) -> dict:
            *way_args(way, args.tile_elements, args.workers)]
     res = run_metered(cmd, folder)
     res["stages"] = stage_seconds(log)
+    res["main_mb"] = main_peak_mb(log)
     res["tiles"] = tiles_of(folder / f"twin-{way}") if res["code"] == 0 else None
     return res
 
@@ -123,8 +133,10 @@ def print_way(n: int, way: str, runs: list[dict]) -> None:
     wall = float(np.median([r["wall"] for r in ok]))
     rss = float(np.median([r["rss_mb"] for r in ok]))
     stages = ", ".join(f"{k} {np.median([r['stages'].get(k, 0.0) for r in ok]):.1f}" for k in ok[0]["stages"])
+    mains = [r["main_mb"] for r in ok if r.get("main_mb") is not None]
+    main = f"  main process {np.median(mains) * 2**20 / n:5.0f} B/point" if mains else ""
     print(f"  {way:<10} {wall:8.1f} s {n / wall:>10,.0f} points/s  peak {rss:7.0f} MB  {rss * 2**20 / n:6.0f} B/point"
-          f"  tiles {ok[0]['tiles'] or '-'}   [{stages}]", flush=True)
+          f"{main}  tiles {ok[0]['tiles'] or '-'}   [{stages}]", flush=True)
 
 
 def compare(folder: Path, way: str) -> str:

@@ -273,3 +273,20 @@ def test_segments_one_fitted_part_explains_become_one(registry, scene, tmp_path)
     assert np.linalg.norm(real[0].part_centre - centre) < 1e-3
     assert [g.id for g in comp.segments] == list(range(len(comp.segments)))
     assert notes["parts"]["segments"][0]["joined_sizes"]
+
+
+def test_spread_in_pieces_gives_every_element_its_own_volume_and_largest_sigma(monkeypatch: pytest.MonkeyPatch
+                                                                                ) -> None:
+    import stages.fusion._segments as segments_module
+
+    rng = np.random.default_rng(23)
+    n = 1000
+    sig = rng.uniform(0.001, 0.02, (n, 3))
+    rot = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]
+    cov = rot @ (sig[:, :, None] ** 2 * np.eye(3)[None]) @ np.swapaxes(rot, 1, 2)
+    ds = Dataset(name="c", role="as-is", points=rng.normal(size=(n, 3)), uncertainty=GaussianUncertainty(cov))
+    idx = rng.choice(n, 700, replace=False)
+    monkeypatch.setattr(segments_module, "SPREAD_PIECE", 64)  # eleven pieces, the last one short
+    volume, largest = segments_module.spread(ds, idx)
+    assert np.allclose(volume, np.prod(sig[idx], axis=1), rtol=1e-9)  # √det Σ = σ1 σ2 σ3 whatever the rotation
+    assert np.allclose(largest, sig[idx].max(axis=1), rtol=1e-9)

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import GdtError
+from ..memory import return_freed_memory
 from ..plugins import ExecutorOptions, Registry, StageContext, TileBounds, TileExecutor
 from ..slots import valid
 from ..tiling import (
@@ -251,6 +252,9 @@ def _merge(slots: dict[str, Any], members: dict[int, list[np.ndarray]], results:
                          for d in range(len(recent))]
     if "change" in provides:
         out["change"] = [merge_change([r.slots["change"][d] for r in results], orders[d]) for d in range(len(recent))]
+    for r in results:  # merged: the tiles' pieces go before the stages' finish runs on the merged slots
+        r.slots.clear()
+    return_freed_memory()
     return out
 
 

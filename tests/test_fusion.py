@@ -290,3 +290,19 @@ def test_spread_in_pieces_gives_every_element_its_own_volume_and_largest_sigma(m
     volume, largest = segments_module.spread(ds, idx)
     assert np.allclose(volume, np.prod(sig[idx], axis=1), rtol=1e-9)  # √det Σ = σ1 σ2 σ3 whatever the rotation
     assert np.allclose(largest, sig[idx].max(axis=1), rtol=1e-9)
+
+
+@pytest.mark.parametrize("policy", ["most_reliable", "replace_in_view"])
+def test_fusion_in_pieces_decides_every_element_as_in_one_piece(registry, scene, policy: str,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    import stages.fusion._replace as replace_module
+
+    reference, precise, change = scene
+    whole, _ = _run(registry, policy, reference, [precise], [change])
+    monkeypatch.setattr(replace_module, "CHOOSE_PIECE", 701)  # nine pieces, the last one short
+    pieces, notes = _run(registry, policy, reference, [precise], [change])
+    assert notes["fusion"]["replaced"].get("E1_tof", 0) >= 2970  # the measured scan's path is taken, not only the CAD
+    for a, b in zip(whole.items, pieces.items, strict=True):
+        for name in ("visible", "state", "reason"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), (a.key, name)
+        assert np.array_equal(a.reason_ratio, b.reason_ratio, equal_nan=True), a.key

@@ -12,6 +12,9 @@ from gdt_pipeline import Change, ChangeState, CompositeItem, Dataset, FusionReas
 
 from ._segments import spread
 
+# unchanged recent elements ``_choose`` judges at a time
+CHOOSE_PIECE = 1 << 20
+
 
 @dataclasses.dataclass
 class Decision:
@@ -92,6 +95,17 @@ def _choose(qi: int, ds: Dataset, ch: Change, known: KnownInView, policy: str, r
     cand = np.flatnonzero(ch.state == ChangeState.UNCHANGED)
     if not cand.size:
         return
+    mask = np.zeros(ds.n_elements, bool)
+    # in pieces: positions, spreads and nearest neighbours of every unchanged point were 64 B a point at once
+    for start in range(0, len(cand), CHOOSE_PIECE):
+        _choose_piece(cand[start:start + CHOOSE_PIECE], ds, known, policy, ratio_limit, reason, ratio, mask, taking)
+    if known.tree is not None:
+        out.taking[qi] = mask
+
+
+def _choose_piece(cand: np.ndarray, ds: Dataset, known: KnownInView, policy: str, ratio_limit: float | None,
+                  reason: np.ndarray, ratio: np.ndarray, mask: np.ndarray, taking: Taking) -> None:
+    """``_choose`` for the unchanged elements ``cand`` of the dataset."""
     rpos = ds.element_positions()[cand]
     v_new, sigma = spread(ds, cand)
     spacing = 3.0 * sigma
@@ -112,9 +126,7 @@ def _choose(qi: int, ds: Dataset, ch: Change, known: KnownInView, policy: str, r
         reason[cand[near & ~take]] = FusionReason.KNOWN_MORE_PRECISE
     reason[cand[take]] = FusionReason.REPLACES
     ratio[cand[near]] = np.where(np.isfinite(r[near]), r[near], np.nan)
-    mask = np.zeros(ds.n_elements, bool)
     mask[cand[take]] = True
-    out.taking[qi] = mask
     taking.pos.append(rpos[take])
     taking.vol.append(v_new[take])
 

@@ -114,21 +114,9 @@ class Correspondences:
         kind = type(pieces[0]) if pieces else cls
         values: dict[str, Any] = {"query": query, "n_elements": n_elements,
                                   "method": pieces[0].method if pieces else ""}
-        for f in dataclasses.fields(kind):
-            if f.name in values or not _per_candidate(f):
-                continue
-            parts = [getattr(p, f.name) for p in pieces]
-            if all(v is None for v in parts):
-                continue
-            if "rows_of" in f.metadata:  # pieces without the row model have no rows to index: −1
-                values[f.metadata["rows_of"]], values[f.name] = _joined_rows(pieces, f.metadata["rows_of"], f.name)
-                continue
-            if any(v is None for v in parts):
-                raise GdtError(f"tiles disagree on whether candidates carry {f.name!r}")
-            if isinstance(parts[0], np.ndarray):
-                values[f.name] = np.concatenate(parts)
-            else:
-                values[f.name] = concat_uncertainty(parts, sizes)
+        for name, parts in _field_parts(pieces, kind, values).items():
+            values[name] = np.concatenate(parts) if isinstance(parts[0], np.ndarray) else \
+                concat_uncertainty(parts, sizes)
         if not pieces:
             values.update(ref_item=np.zeros(0), ref_element=np.zeros(0), position=np.zeros((0, 3)),
                           distance=np.zeros(0), element=np.zeros(0, np.int64))
@@ -143,29 +131,38 @@ class Correspondences:
         tiles', not both in full (three copies with ``concat`` and ``take``)."""
         if not pieces:
             return cls.concat(pieces, query, n_elements)
-        sizes = [len(p.ref_item) for p in pieces]
+        total = sum(len(p.ref_item) for p in pieces)
         kind = type(pieces[0])
         values: dict[str, Any] = {"query": query, "n_elements": n_elements, "method": pieces[0].method}
-        columns: dict[str, list[Any]] = {}
-        for f in dataclasses.fields(kind):
-            if f.name in values or not _per_candidate(f):
-                continue
-            parts = [getattr(p, f.name) for p in pieces]
-            if all(v is None for v in parts):
-                continue
-            if "rows_of" in f.metadata:
-                values[f.metadata["rows_of"]], rows = _joined_rows(pieces, f.metadata["rows_of"], f.name)
-                parts = np.split(rows, np.cumsum(sizes)[:-1])
-            elif any(v is None for v in parts):
-                raise GdtError(f"tiles disagree on whether candidates carry {f.name!r}")
-            columns[f.name] = parts
+        columns = _field_parts(pieces, kind, values)
         if release:
             pieces.clear()
         for name, parts in columns.items():
-            values[name] = _scatter(parts, where, sum(sizes))
+            values[name] = _scatter(parts, where, total)
             if release:
                 return_freed_memory()  # the pieces' pages of this field, before the next field's are taken
         return kind(**values)
+
+
+def _field_parts(pieces: Sequence[Correspondences], kind: type, values: dict[str, Any]) -> dict[str, list[Any]]:
+    """Per per-candidate field that some piece carries (and ``values`` does not hold yet), each piece's part; row
+    indices offset into the pieces' joined row model, which goes into ``values``. An error when pieces disagree on
+    whether they carry a field."""
+    sizes = [len(p.ref_item) for p in pieces]
+    out: dict[str, list[Any]] = {}
+    for f in dataclasses.fields(kind):
+        if f.name in values or not _per_candidate(f):
+            continue
+        parts = [getattr(p, f.name) for p in pieces]
+        if all(v is None for v in parts):
+            continue
+        if "rows_of" in f.metadata:  # pieces without the row model have no rows to index: −1
+            values[f.metadata["rows_of"]], rows = _joined_rows(pieces, f.metadata["rows_of"], f.name)
+            parts = np.split(rows, np.cumsum(sizes)[:-1])
+        elif any(v is None for v in parts):
+            raise GdtError(f"tiles disagree on whether candidates carry {f.name!r}")
+        out[f.name] = parts
+    return out
 
 
 def _joined_rows(pieces: Sequence[Correspondences], rows_of: str, name: str) -> tuple[Any, np.ndarray]:

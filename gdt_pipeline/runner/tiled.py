@@ -26,6 +26,7 @@ from ..memory import return_freed_memory
 from ..plugins import ExecutorOptions, Registry, StageContext, TileBounds, TileExecutor
 from ..slots import valid
 from ..tiling import (
+    CandidateSink,
     CellIndex,
     ElementOrder,
     crop_composite,
@@ -227,8 +228,9 @@ def _finish_correspondences(task: TileTask) -> TileTask:
 
 
 def _merge(slots: dict[str, Any], members: dict[int, list[np.ndarray]], results: list[TileResult],
-           provides: set[str], sink: RecentSink) -> dict[str, Any]:
-    """The tiles' core results merged into whole-epoch slots (``sink``: the uncertainty merged as tiles finished)."""
+           provides: set[str], sink: RecentSink, candidates: CandidateSink | None) -> dict[str, Any]:
+    """The tiles' core results merged into whole-epoch slots (``sink``: the uncertainty merged as tiles finished;
+    ``candidates``: their candidates, when kept on disk as they finished)."""
     recent: list[Dataset] = slots["recent"]
     tiles = [r.tile for r in results]
     orders = [ElementOrder.check(ds.name, [members[t][d] for t in tiles], ds.n_elements)
@@ -241,6 +243,10 @@ def _merge(slots: dict[str, Any], members: dict[int, list[np.ndarray]], results:
     if "correspondences" in provides:
         merged = []
         for d, ds in enumerate(recent):
+            if candidates is not None:
+                corr, maps[d] = candidates.merged(d, tiles, ds.n_elements)
+                merged.append(corr)
+                continue
             pieces = [r.slots["correspondences"][d] for r in results]
             for r in results:  # the merge lets go of each tile's candidates as it places them
                 r.slots["correspondences"][d] = None
@@ -278,15 +284,21 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
              min(halos, default=0.0), max(halos, default=0.0), ", ".join(st.spec.name for st in stages))
     provides = {s for st in stages for s in st.spec.provides}
     sink = RecentSink([ds.n_elements for ds in slots["recent"]])
+    spill = "correspondences" in provides and session.options.spill_candidates
+    with contextlib.ExitStack() as stack:
+        candidates = stack.enter_context(CandidateSink()) if spill else None
 
-    def finished(result: TileResult) -> None:
-        if "recent" in provides:
-            sink.absorb(result.slots["recent"], cutter.members[result.tile])
+        def finished(result: TileResult) -> None:
+            if "recent" in provides:
+                sink.absorb(result.slots["recent"], cutter.members[result.tile])
+            if candidates is not None:
+                candidates.absorb(result.tile, result.slots["correspondences"])
 
-    with progress_task(len(cutter.members)) as advance:
-        results = _run_rounds(cutter, list(cutter.members), executor, fn, stages, seed, threads, advance, finished)
-    ordered = [results[t] for t in cutter.members]
-    slots.update(_merge(slots, cutter.members, ordered, provides, sink))
+        with progress_task(len(cutter.members)) as advance:
+            results = _run_rounds(cutter, list(cutter.members), executor, fn, stages, seed, threads, advance,
+                                  finished)
+        ordered = [results[t] for t in cutter.members]
+        slots.update(_merge(slots, cutter.members, ordered, provides, sink, candidates))
     _finish(stages, slots, seed)
     widened = sum(1 for r in ordered if r.halo > cutter.halo(r.tile))
     return _outcome(stages, ordered, cutter, session, widened)

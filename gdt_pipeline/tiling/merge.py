@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import GdtError
 from ..types import Change, Correspondences, Dataset, GaussianUncertainty, Scores, Uncertainty, concat_uncertainty
+from .candidate_sink import candidate_places
 
 
 @dataclass(frozen=True)
@@ -99,15 +100,7 @@ def merge_correspondences(pieces: list[Correspondences], n_elements: int, query:
                           ) -> tuple[Correspondences, list[np.ndarray]]:
     """The tiles' core candidates in element order, and per tile where each of its candidates went (``release``:
     empty ``pieces`` as they are merged, ``Correspondences.scattered``)."""
-    sizes = [len(p.ref_item) for p in pieces]
-    elements = np.concatenate([p.element for p in pieces]) if pieces else np.zeros(0, np.int64)
-    order = np.argsort(elements, kind="stable")
-    del elements
-    where = np.empty(len(order), dtype=np.int64)
-    where[order] = np.arange(len(order))
-    del order
-    offsets = np.r_[0, np.cumsum(sizes)]
-    maps = [where[offsets[i]:offsets[i + 1]] for i in range(len(pieces))]
+    maps = candidate_places([p.element for p in pieces])
     return Correspondences.scattered(pieces, maps, query, n_elements, release), maps
 
 

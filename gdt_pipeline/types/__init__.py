@@ -10,7 +10,7 @@ is treated as infinitely many points that share the facet's uncertainty (paper S
 
 from twin_store import Segment
 
-from .arrays import broadcast_rows, frozen_array
+from .arrays import MappedRows, broadcast_rows, frozen_array
 from .composite import Composite, CompositeItem, EpochInfo
 from .correspondences import Correspondences
 from .data import Change, Dataset, ItemView, RegionOfView, Registration, Scores, SourceInfo
@@ -35,6 +35,7 @@ __all__ = [
     "GaussianUncertainty",
     "ItemView",
     "Kind",
+    "MappedRows",
     "MixtureUncertainty",
     "Region99",
     "RegionOfView",

@@ -1,19 +1,59 @@
-"""Read-only, shape-checked numpy arrays: what every record below holds."""
+"""Read-only, shape-checked numpy arrays: what every record below holds; and rows kept in a scratch file
+(``MappedRows``), which the records hold as they are."""
 
 from __future__ import annotations
 
+import mmap
 from typing import Any
 
 import numpy as np
 
+# Rows a ``MappedRows`` gathers before it lets go of the file pages it touched: random rows touch a page each, so
+# this bounds the pages mapped at once (32 MB) whatever the number of rows taken.
+MAPPED_PIECE = 8192
+
+
+class MappedRows(np.memmap):
+    """A read-only array over a scratch file (``np.memmap``) whose rows are taken a piece at a time: after each piece
+    the pages it touched leave the process (``MADV_DONTNEED``; they stay in the page cache), so a process that takes
+    a hundred thousand random rows of a 10⁸-row file holds those rows, not the pages around them."""
+
+    def __getitem__(self, index: Any) -> Any:
+        rows = _row_selection(index, self.shape[0] if self.ndim else 0)
+        if rows is None or self._mmap is None:
+            return super().__getitem__(index)
+        out = np.empty((len(rows), *self.shape[1:]), dtype=self.dtype)
+        plain = self.view(np.ndarray)
+        for start in range(0, len(rows), MAPPED_PIECE):
+            out[start:start + MAPPED_PIECE] = plain[rows[start:start + MAPPED_PIECE]]
+            self._mmap.madvise(mmap.MADV_DONTNEED)
+        return out
+
+
+def _row_selection(index: Any, n: int) -> np.ndarray | None:
+    """The rows a first-axis selection by an integer or boolean array takes (None for any other index)."""
+    if not isinstance(index, np.ndarray) or index.ndim != 1:
+        return None
+    if index.dtype == bool:
+        return np.flatnonzero(index) if len(index) == n else None
+    return index if index.dtype.kind in "iu" else None
+
+
+def _shared_as_is(a: Any, dtype: type | np.dtype[Any]) -> bool:
+    """Whether ``a`` is held as it is: rows of a read-only scratch-file map (nobody can write them) of ``dtype``."""
+    return isinstance(a, MappedRows) and not a.flags.writeable and a.flags.c_contiguous and a.dtype == np.dtype(dtype)
+
 
 def frozen_array(a: np.ndarray | list[Any] | tuple[Any, ...], dtype: type | np.dtype[Any],
                  ndim_shape: tuple[int | None, ...], what: str) -> np.ndarray:
-    """Return a read-only C-contiguous copy of ``a`` with the given dtype, checking its shape (None = any)."""
-    arr = np.ascontiguousarray(np.asarray(a, dtype=dtype))
+    """Return a read-only C-contiguous copy of ``a`` with the given dtype, checking its shape (None = any); a
+    ``MappedRows`` of that dtype is held as it is (read-only by construction, and copying it is what it avoids)."""
+    arr = a if _shared_as_is(a, dtype) else np.ascontiguousarray(np.asarray(a, dtype=dtype))
     if arr.ndim != len(ndim_shape) or any(s is not None and s != d for s, d in zip(ndim_shape, arr.shape, strict=True)):
         want = "(" + ", ".join("N" if s is None else str(s) for s in ndim_shape) + ")"
         raise ValueError(f"{what}: expected shape {want}, got {arr.shape}")
+    if arr is a and isinstance(a, MappedRows):
+        return arr
     if arr is a or arr.base is not None:
         arr = arr.copy()
     arr.setflags(write=False)

@@ -114,7 +114,7 @@ class Correspondences:
         kind = type(pieces[0]) if pieces else cls
         values: dict[str, Any] = {"query": query, "n_elements": n_elements,
                                   "method": pieces[0].method if pieces else ""}
-        for name, parts in _field_parts(pieces, kind, values).items():
+        for name, parts in field_parts(pieces, kind, values).items():
             values[name] = np.concatenate(parts) if isinstance(parts[0], np.ndarray) else \
                 concat_uncertainty(parts, sizes)
         if not pieces:
@@ -134,17 +134,17 @@ class Correspondences:
         total = sum(len(p.ref_item) for p in pieces)
         kind = type(pieces[0])
         values: dict[str, Any] = {"query": query, "n_elements": n_elements, "method": pieces[0].method}
-        columns = _field_parts(pieces, kind, values)
+        columns = field_parts(pieces, kind, values)
         if release:
             pieces.clear()
         for name, parts in columns.items():
-            values[name] = _scatter(parts, where, total)
+            values[name] = scatter_rows(parts, where, total)
             if release:
                 return_freed_memory()  # the pieces' pages of this field, before the next field's are taken
         return kind(**values)
 
 
-def _field_parts(pieces: Sequence[Correspondences], kind: type, values: dict[str, Any]) -> dict[str, list[Any]]:
+def field_parts(pieces: Sequence[Correspondences], kind: type, values: dict[str, Any]) -> dict[str, list[Any]]:
     """Per per-candidate field that some piece carries (and ``values`` does not hold yet), each piece's part; row
     indices offset into the pieces' joined row model, which goes into ``values``. An error when pieces disagree on
     whether they carry a field."""
@@ -180,8 +180,9 @@ def _joined_rows(pieces: Sequence[Correspondences], rows_of: str, name: str) -> 
     return concat_uncertainty(models, [m.rows for m in models]), np.concatenate(rows)
 
 
-def _scatter(parts: list[Any], where: Sequence[np.ndarray], total: int) -> Any:
-    """One per-candidate field of the pieces put in place (each piece's part let go once written)."""
+def scatter_rows(parts: list[Any], where: Sequence[np.ndarray], total: int) -> Any:
+    """One per-candidate field of the pieces put in place, row j of piece i at ``where[i][j]`` (each piece's part let
+    go once written)."""
     first = parts[0]
     if isinstance(first, np.ndarray):
         out = np.empty((total, *first.shape[1:]), dtype=np.result_type(*parts))

@@ -1,0 +1,228 @@
+"""The tiles' candidates kept on disk as tiles finish, and merged into element order on disk (``docs/scale.md``).
+
+A candidate's wide columns (the matched position, the query position, the distance and, with the pooled
+expectation, the query's covariance: 128 B of the 160 B a candidate holds) are read again only by the null
+simulation, which draws 10⁵ pairs, and by whoever takes a subset. So the process running the tiles writes each
+tile's wide columns to an unnamed scratch file as the tile finishes and keeps only the narrow ones (items, elements,
+rows: 24–32 B a candidate). The merge gathers the wide columns into element order in a second scratch file, piece by
+piece, and hands them on as read-only maps of it (``MappedRows``): the merged ``Correspondences`` are the same,
+value for value, as the ones merged in memory, and the epoch's candidates never sit in the process whole.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+from typing import IO, Any
+
+import numpy as np
+
+from ..errors import GdtError
+from ..memory import return_freed_memory
+from ..types import Correspondences, GaussianUncertainty, MappedRows
+from ..types.correspondences import field_parts, scatter_rows
+
+# Per-candidate arrays written to disk; the query's per-candidate Gaussian covariances go too ("query_cov").
+WIDE_FIELDS = ("position", "query_position", "distance")
+QUERY_COV = "query_cov"
+# Merged candidates gathered and written at a time: 2¹⁸ rows of the widest column (a covariance) are 19 MB.
+GATHER_ROWS = 1 << 18
+
+
+@dataclass(frozen=True)
+class _Column:
+    """One wide column of one tile's candidates in the arrival file."""
+
+    offset: int
+    dtype: np.dtype
+    row_shape: tuple[int, ...]
+
+    @property
+    def row_bytes(self) -> int:
+        return int(self.dtype.itemsize * np.prod(self.row_shape, dtype=np.int64))
+
+
+@dataclass
+class _Held:
+    """One tile's candidates of one dataset: the narrow fields in memory, the wide ones in the arrival file."""
+
+    kind: type
+    narrow: SimpleNamespace
+    columns: dict[str, _Column]
+    size: int
+    query_dof: float | None = None
+
+
+@dataclass
+class CandidateSink:
+    """Per recent dataset, the finished tiles' candidates, their wide columns on disk in ``folder`` (TMPDIR)."""
+
+    folder: Path = field(default_factory=lambda: Path(tempfile.gettempdir()))
+    held: dict[int, dict[int, _Held]] = field(default_factory=dict)
+    _file: IO[bytes] | None = None
+    _end: int = 0
+
+    def __enter__(self) -> CandidateSink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Let go of the arrival file (the merged columns' file lives as long as their maps)."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        self.held.clear()
+
+    def absorb(self, tile: int, pieces: list[Correspondences | None]) -> None:
+        """Write tile ``tile``'s candidates' wide columns to disk, keep the rest, and empty ``pieces``."""
+        for d, corr in enumerate(pieces):
+            if corr is None:
+                continue
+            self.held.setdefault(d, {})[tile] = self._hold(corr)
+            pieces[d] = None
+
+    def merged(self, d: int, tiles: Sequence[int], n_elements: int) -> tuple[Correspondences, list[np.ndarray]]:
+        """Dataset ``d``'s candidates of ``tiles`` in element order, and per tile where each of its candidates
+        went (as ``merge_correspondences``)."""
+        held = [self.held[d].pop(t) for t in tiles]
+        maps = candidate_places([h.narrow.element for h in held])
+        for t, places in zip(tiles, maps, strict=True):
+            if np.any(places[1:] <= places[:-1]):  # the gather reads each tile's candidates in runs
+                raise GdtError(f"tile {t}: the candidates of dataset {d} are not in element order")
+        total = sum(h.size for h in held)
+        kind = held[0].kind if held else Correspondences
+        values: dict[str, Any] = {"query": d, "n_elements": n_elements,
+                                  "method": held[0].narrow.method if held else ""}
+        if not _one_gaussian(held):
+            self._query_models_back(held)
+        for name, parts in field_parts([h.narrow for h in held], kind, values).items():
+            values[name] = scatter_rows(parts, maps, total)
+        for h in held:
+            h.narrow = SimpleNamespace()
+        values.update(self._wide(held, maps, total))
+        return_freed_memory()
+        return kind(**values), maps
+
+    def _hold(self, corr: Correspondences) -> _Held:
+        columns: dict[str, _Column] = {}
+        narrow = {f.name: getattr(corr, f.name) for f in dataclasses.fields(corr)}
+        for name in WIDE_FIELDS:
+            if narrow[name] is not None:
+                columns[name] = self._write(np.ascontiguousarray(narrow[name]))
+                narrow[name] = None
+        u = corr.query_uncertainty
+        dof = None
+        if isinstance(u, GaussianUncertainty) and u.rows == len(corr.ref_item) and u.rows > 1:
+            columns[QUERY_COV], dof = self._write(np.ascontiguousarray(u.cov)), u.dof
+            narrow["query_uncertainty"] = None
+        return _Held(type(corr), SimpleNamespace(**narrow), columns, len(corr.ref_item), dof)
+
+    def _write(self, values: np.ndarray) -> _Column:
+        if self._file is None:
+            # no name in the folder (O_TMPFILE): whatever kills the run, the kernel frees it with the descriptor
+            self._file = tempfile.TemporaryFile(prefix="gdt-candidates-", dir=self.folder)  # noqa: SIM115
+        column = _Column(self._end, values.dtype, values.shape[1:])
+        _write_at(self._file, values, self._end, self.folder)
+        self._end += values.nbytes
+        return column
+
+    def _read(self, column: _Column, start: int, stop: int) -> np.ndarray:
+        assert self._file is not None
+        size = column.row_bytes * (stop - start)
+        raw = os.pread(self._file.fileno(), size, column.offset + column.row_bytes * start)
+        return np.frombuffer(raw, dtype=column.dtype).reshape(stop - start, *column.row_shape)
+
+    def _wide(self, held: list[_Held], maps: list[np.ndarray], total: int) -> dict[str, Any]:
+        """The wide fields of the merged candidates: read-only maps of a scratch file in element order."""
+        names = sorted({name for h in held for name in h.columns})
+        for name in names:
+            if any(name not in h.columns for h in held):
+                raise GdtError(f"tiles disagree on whether candidates carry {name!r}")
+        if not names:
+            return {}
+        merged_file = tempfile.TemporaryFile(prefix="gdt-candidates-merged-", dir=self.folder)  # noqa: SIM115
+        out: dict[str, Any] = {}
+        try:
+            offset = 0
+            for name in names:
+                first = held[0].columns[name]
+                self._gather(merged_file, offset, [h.columns[name] for h in held], maps, total)
+                mapped = _mapped(merged_file, offset, first.dtype, (total, *first.row_shape))
+                offset += first.row_bytes * total
+                if name == QUERY_COV:
+                    out["query_uncertainty"] = GaussianUncertainty.trusted(mapped, held[0].query_dof)
+                else:
+                    out[name] = mapped
+        finally:
+            merged_file.close()  # the maps keep the file (each holds its own descriptor)
+        return out
+
+    def _gather(self, into: IO[bytes], offset: int, columns: list[_Column], maps: list[np.ndarray],
+                total: int) -> None:
+        """One wide column of every tile written into ``into`` at ``offset`` in element order, a piece at a time:
+        each piece takes, from every tile, the contiguous run of its candidates that land there."""
+        first = columns[0]
+        for start in range(0, total, GATHER_ROWS):
+            stop = min(total, start + GATHER_ROWS)
+            piece = np.empty((stop - start, *first.row_shape), dtype=first.dtype)
+            for column, places in zip(columns, maps, strict=True):
+                lo, hi = np.searchsorted(places, [start, stop])
+                if hi > lo:
+                    piece[places[lo:hi] - start] = self._read(column, int(lo), int(hi))
+            _write_at(into, piece, offset + first.row_bytes * start, self.folder)
+
+    def _query_models_back(self, held: list[_Held]) -> None:
+        """The query's spilled covariances read back into memory, where tiles' models differ (some not Gaussian
+        per candidate, or of another dof): they are merged in memory, as without the sink."""
+        for h in held:
+            if QUERY_COV in h.columns:
+                cov = self._read(h.columns.pop(QUERY_COV), 0, h.size).copy()
+                cov.setflags(write=False)
+                h.narrow.query_uncertainty = GaussianUncertainty.trusted(cov, h.query_dof)
+
+
+def _one_gaussian(held: list[_Held]) -> bool:
+    """Whether every tile's query models went to disk as Gaussians of one dof (or none did)."""
+    spilled = [QUERY_COV in h.columns for h in held]
+    return not any(spilled) or (all(spilled) and len({h.query_dof for h in held}) == 1)
+
+
+def candidate_places(elements: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Per piece, where each of its candidates goes when all are put in element order (stable, piece by piece);
+    each piece's places increase, since its candidates are in element order already."""
+    sizes = [len(e) for e in elements]
+    joined = np.concatenate(elements) if elements else np.zeros(0, np.int64)
+    order = np.argsort(joined, kind="stable")
+    del joined
+    where = np.empty(len(order), dtype=np.int64)
+    where[order] = np.arange(len(order))
+    offsets = np.r_[0, np.cumsum(sizes)]
+    return [where[offsets[i]:offsets[i + 1]] for i in range(len(sizes))]
+
+
+def _mapped(file: IO[bytes], offset: int, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
+    """Rows of ``file`` at ``offset`` as a read-only map (an empty array when there are none: nothing to map)."""
+    if shape[0] == 0:
+        empty = np.zeros(shape, dtype=dtype)
+        empty.setflags(write=False)
+        return empty
+    return MappedRows(file, dtype=dtype, mode="r", offset=offset, shape=shape)
+
+
+def _write_at(file: IO[bytes], values: np.ndarray, offset: int, folder: Path) -> None:
+    """``values`` written at ``offset``; a full disk is named with the folder to change."""
+    data = memoryview(np.ascontiguousarray(values).reshape(-1).view(np.uint8))
+    try:
+        while data:
+            done = os.pwrite(file.fileno(), data, offset)
+            data, offset = data[done:], offset + done
+    except OSError as exc:
+        raise GdtError(f"{folder}: writing the tiles' candidates to scratch space failed ({exc.strerror}); set "
+                       f"TMPDIR to a disk with room for about 130 B a candidate, twice") from exc

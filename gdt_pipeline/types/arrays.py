@@ -20,13 +20,14 @@ class MappedRows(np.memmap):
 
     def __getitem__(self, index: Any) -> Any:
         rows = _row_selection(index, self.shape[0] if self.ndim else 0)
-        if rows is None or self._mmap is None:
+        pages: mmap.mmap | None = getattr(self, "_mmap", None)  # np.memmap's map (None for a copy)
+        if rows is None or pages is None:
             return super().__getitem__(index)
         out = np.empty((len(rows), *self.shape[1:]), dtype=self.dtype)
         plain = self.view(np.ndarray)
         for start in range(0, len(rows), MAPPED_PIECE):
             out[start:start + MAPPED_PIECE] = plain[rows[start:start + MAPPED_PIECE]]
-            self._mmap.madvise(mmap.MADV_DONTNEED)
+            pages.madvise(mmap.MADV_DONTNEED)
         return out
 
 
@@ -48,11 +49,12 @@ def frozen_array(a: np.ndarray | list[Any] | tuple[Any, ...], dtype: type | np.d
                  ndim_shape: tuple[int | None, ...], what: str) -> np.ndarray:
     """Return a read-only C-contiguous copy of ``a`` with the given dtype, checking its shape (None = any); a
     ``MappedRows`` of that dtype is held as it is (read-only by construction, and copying it is what it avoids)."""
-    arr = a if _shared_as_is(a, dtype) else np.ascontiguousarray(np.asarray(a, dtype=dtype))
+    shared = isinstance(a, MappedRows) and _shared_as_is(a, dtype)
+    arr = a if isinstance(a, np.ndarray) and shared else np.ascontiguousarray(np.asarray(a, dtype=dtype))
     if arr.ndim != len(ndim_shape) or any(s is not None and s != d for s, d in zip(ndim_shape, arr.shape, strict=True)):
         want = "(" + ", ".join("N" if s is None else str(s) for s in ndim_shape) + ")"
         raise ValueError(f"{what}: expected shape {want}, got {arr.shape}")
-    if arr is a and isinstance(a, MappedRows):
+    if shared:
         return arr
     if arr is a or arr.base is not None:
         arr = arr.copy()

@@ -285,8 +285,7 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
     provides = {s for st in stages for s in st.spec.provides}
     sink = RecentSink([ds.n_elements for ds in slots["recent"]])
     spill = "correspondences" in provides and session.options.spill_candidates
-    with contextlib.ExitStack() as stack:
-        candidates = stack.enter_context(CandidateSink()) if spill else None
+    with CandidateSink() if spill else contextlib.nullcontext() as candidates:
 
         def finished(result: TileResult) -> None:
             if "recent" in provides:

@@ -149,11 +149,15 @@ class CandidateSink:
             return {}
         merged_file = tempfile.TemporaryFile(prefix="gdt-candidates-merged-", dir=self.folder)  # noqa: SIM115
         out: dict[str, Any] = {}
+        # per tile, the run of its candidates that lands in each piece of GATHER_ROWS merged rows (one search for
+        # all columns)
+        edges = np.minimum(np.arange(0, total + GATHER_ROWS, GATHER_ROWS), total)
+        runs = [np.searchsorted(places, edges) for places in maps]
         try:
             offset = 0
             for name in names:
                 first = held[0].columns[name]
-                self._gather(merged_file, offset, [h.columns[name] for h in held], maps, total)
+                self._gather(merged_file, offset, [h.columns[name] for h in held], maps, runs, total)
                 mapped = _mapped(merged_file, offset, first.dtype, (total, *first.row_shape))
                 offset += first.row_bytes * total
                 if name == QUERY_COV:
@@ -165,15 +169,15 @@ class CandidateSink:
         return out
 
     def _gather(self, into: IO[bytes], offset: int, columns: list[_Column], maps: list[np.ndarray],
-                total: int) -> None:
+                runs: list[np.ndarray], total: int) -> None:
         """One wide column of every tile written into ``into`` at ``offset`` in element order, a piece at a time:
-        each piece takes, from every tile, the contiguous run of its candidates that land there."""
+        piece k takes, from every tile, the contiguous run ``runs[tile][k]:runs[tile][k + 1]`` of its candidates."""
         first = columns[0]
-        for start in range(0, total, GATHER_ROWS):
+        for k, start in enumerate(range(0, total, GATHER_ROWS)):
             stop = min(total, start + GATHER_ROWS)
             piece = np.empty((stop - start, *first.row_shape), dtype=first.dtype)
-            for column, places in zip(columns, maps, strict=True):
-                lo, hi = np.searchsorted(places, [start, stop])
+            for column, places, run in zip(columns, maps, runs, strict=True):
+                lo, hi = run[k], run[k + 1]
                 if hi > lo:
                     piece[places[lo:hi] - start] = self._read(column, int(lo), int(hi))
             _write_at(into, piece, offset + first.row_bytes * start, self.folder)

@@ -40,9 +40,9 @@ def _row_selection(index: Any, n: int) -> np.ndarray | None:
     return index if index.dtype.kind in "iu" else None
 
 
-def _shared_as_is(a: Any, dtype: type | np.dtype[Any]) -> bool:
-    """Whether ``a`` is held as it is: rows of a read-only scratch-file map (nobody can write them) of ``dtype``."""
-    return isinstance(a, MappedRows) and not a.flags.writeable and a.flags.c_contiguous and a.dtype == np.dtype(dtype)
+def _shared_as_is(a: MappedRows, dtype: type | np.dtype[Any]) -> bool:
+    """Whether rows of a scratch-file map are held as they are: read-only (nobody can write them) and of ``dtype``."""
+    return not a.flags.writeable and a.flags.c_contiguous and a.dtype == np.dtype(dtype)
 
 
 def frozen_array(a: np.ndarray | list[Any] | tuple[Any, ...], dtype: type | np.dtype[Any],
@@ -50,7 +50,7 @@ def frozen_array(a: np.ndarray | list[Any] | tuple[Any, ...], dtype: type | np.d
     """Return a read-only C-contiguous copy of ``a`` with the given dtype, checking its shape (None = any); a
     ``MappedRows`` of that dtype is held as it is (read-only by construction, and copying it is what it avoids)."""
     shared = isinstance(a, MappedRows) and _shared_as_is(a, dtype)
-    arr = a if isinstance(a, np.ndarray) and shared else np.ascontiguousarray(np.asarray(a, dtype=dtype))
+    arr = a if shared and isinstance(a, MappedRows) else np.ascontiguousarray(np.asarray(a, dtype=dtype))
     if arr.ndim != len(ndim_shape) or any(s is not None and s != d for s, d in zip(ndim_shape, arr.shape, strict=True)):
         want = "(" + ", ".join("N" if s is None else str(s) for s in ndim_shape) + ")"
         raise ValueError(f"{what}: expected shape {want}, got {arr.shape}")

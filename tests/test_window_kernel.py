@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from gdt_pipeline import GaussianUncertainty
+from gdt_pipeline import Dataset, GaussianUncertainty
 from gdt_pipeline.region_of_view.depth import (
     FOOTPRINT,
     Station,
@@ -16,9 +16,9 @@ from gdt_pipeline.region_of_view.depth import (
     pixel_cells,
     window_votes,
 )
+from gdt_pipeline.region_of_view.depth_view import depth_images
 from gdt_pipeline.region_of_view.window_kernel import window_sides
 from gdt_pipeline.simulation.scanner import ScannerSpec, simulate_scan
-from gdt_pipeline.types.arrays import covariance6
 
 EYE = np.zeros(3)
 K = 3.0
@@ -61,14 +61,12 @@ def _reference(img, pos: np.ndarray, cov: np.ndarray, tris: np.ndarray | None) -
                 key = pixel_cells(az[s:s + 1], el[s:s + 1], img.pixel, drow, dcol)[0][0]
                 if key not in cells:
                     continue
-                start, cnt = img.starts[cells[key]], img.counts[cells[key]]
                 sums = np.zeros(2)
-                for j in range(start, start + cnt):
-                    p = img.points[j]
+                for i in img.order[img.bounds[cells[key]]:img.bounds[cells[key] + 1]]:
+                    p = img.points[i]
                     if tris is not None and not _ray_meets_facet(p, tris[s], FOOTPRINT * img.pixel * depth[s]):
                         continue
-                    c6 = img.cov6[j]
-                    c = np.array([[c6[0], c6[1], c6[2]], [c6[1], c6[3], c6[4]], [c6[2], c6[4], c6[5]]])
+                    c = img.cov[i]
                     offset, var_p = n @ (p - pos[s]), n @ c @ n
                     tol = K * np.sqrt(var_p + var_e)
                     side = 0 if offset > tol else (2 if offset < -tol else 1)
@@ -102,7 +100,7 @@ def _ray_meets_facet(p: np.ndarray, tri: np.ndarray, margin: float) -> bool:
 def test_window_kernel_matches_the_reference() -> None:
     pts, cov = _scan()
     station = Station(eye=EYE, contains=lambda p: np.ones(len(p), bool), datasets=(0,), free_range=0.0)
-    img = build_image(station, pts, covariance6(cov), 1.0)
+    img = build_image(station, pts, cov, 1.0)
     rng = np.random.default_rng(9)
     tris = _facets(rng)
     pos = tris.mean(axis=1)
@@ -114,7 +112,7 @@ def test_window_kernel_matches_the_reference() -> None:
     counts, pooled = np.zeros((3, len(pos)), dtype=np.int64), np.zeros((2, len(pos)))
     var_e = np.einsum("ij,ijk,ik->i", normals, sample_cov, normals)
     window_sides(cells, judged, pos, normals, tris, FOOTPRINT * img.pixel * depth, var_e, img.eye, img.keys,
-                 img.starts, img.counts, img.points, img.cov6, K, counts, pooled)
+                 img.bounds, img.order, img.points, img.cov, K, counts, pooled)
     assert np.array_equal(counts, want_counts)
     assert np.allclose(pooled, want_pooled, rtol=1e-12, atol=1e-18)
     # the three layers come out as they should: at the wall mostly "at", in front "behind", behind it "in front"
@@ -126,3 +124,19 @@ def test_window_kernel_matches_the_reference() -> None:
     # point samples: every point of the window counts; window_votes runs the same kernel
     votes = window_votes(img, pts[::50], cov[::50], None, K)
     assert votes.shape == (2, len(pts[::50])) and votes[0].sum() > 0.9 * len(pts[::50])
+
+
+def test_depth_image_keeps_the_scans_own_arrays() -> None:
+    """A station's image lists the scan's points by pixel instead of copying them (72 B a point): its points and
+    covariances are the dataset's arrays, every point is listed once, and each pixel holds exactly its points."""
+    pts, cov = _scan()
+    scan = Dataset("scan", "as-is", pts, viewpoints=EYE[None]).with_uncertainty(GaussianUncertainty(cov))
+    station = Station(eye=EYE, contains=lambda p: np.ones(len(p), bool), datasets=(0,), free_range=0.0)
+    img = depth_images([station], [scan], 1.0)[0]
+    assert np.shares_memory(img.points, scan.points) and np.shares_memory(img.cov, scan.uncertainty.cov)
+    assert img.keys.nbytes + img.bounds.nbytes + img.order.nbytes <= 16 * len(pts)
+    assert np.array_equal(np.sort(img.order), np.arange(len(pts)))
+    az, el, _ = angles(img.frame, img.eye, pts)
+    per_pixel = np.repeat(img.keys, np.diff(img.bounds))
+    assert np.array_equal(pixel_cells(az, el, img.pixel)[0][img.order], per_pixel)
+    assert np.all(np.diff(img.keys) > 0)

@@ -50,16 +50,17 @@ class Station:
 
 @dataclass(frozen=True)
 class DepthImage:
-    """A station's measured points sorted by angular pixel (see the module docstring)."""
+    """A station's measured points sorted by angular pixel (see the module docstring). The points and covariances
+    are the datasets' own arrays, not sorted copies (72 B a point of the epoch): ``order`` lists them by pixel."""
 
     eye: np.ndarray
     frame: np.ndarray
     pixel: float  # rad
     keys: np.ndarray  # the occupied pixels' keys, sorted
-    starts: np.ndarray  # per occupied pixel, where its points start in ``points``
-    counts: np.ndarray  # per occupied pixel, how many points it holds
-    points: np.ndarray  # (N,3) sorted by pixel
-    cov6: np.ndarray  # (N,6) their covariances in the twin's order: xx, xy, xz, yy, yz, zz
+    bounds: np.ndarray  # (P+1,): pixel i's points are order[bounds[i]:bounds[i + 1]]
+    order: np.ndarray  # (N,) the rows of ``points`` and ``cov`` by pixel
+    points: np.ndarray  # (N,3) as measured
+    cov: np.ndarray  # (N,3,3) their covariances (a shared one broadcast)
     free_range: float
 
 
@@ -106,9 +107,9 @@ def ray_pitch(az: np.ndarray, el: np.ndarray) -> float:
     return max(float(np.sqrt(covered / len(az))), nearest)
 
 
-def build_image(station: Station, pts: np.ndarray, cov6: np.ndarray, pixel_scale: float) -> DepthImage | None:
-    """The station's depth image of its measured points with their covariances packed as (N,6) rows
-    (``covariance6``; None without points)."""
+def build_image(station: Station, pts: np.ndarray, cov: np.ndarray, pixel_scale: float) -> DepthImage | None:
+    """The station's depth image of its measured points and their (N,3,3) covariances, both kept as given (None
+    without points)."""
     if len(pts) < 2:
         return None
     frame = view_frame((pts - station.eye).mean(axis=0))
@@ -117,11 +118,12 @@ def build_image(station: Station, pts: np.ndarray, cov6: np.ndarray, pixel_scale
     key = pixel_keys(az, el, pixel)
     del az, el
     order = np.argsort(key, kind="stable")
-    keys, starts, counts = np.unique(key[order], return_index=True, return_counts=True)
-    del key
-    return DepthImage(eye=station.eye, frame=frame, pixel=pixel, keys=keys, starts=starts, counts=counts,
-                      points=pts[order], cov6=np.ascontiguousarray(cov6[order]), free_range=station.free_range)
-
+    key = key[order]
+    first = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
+    index = np.int32 if len(pts) < np.iinfo(np.int32).max else np.int64
+    return DepthImage(eye=station.eye, frame=frame, pixel=pixel, keys=key[first],
+                      bounds=np.append(first, len(key)).astype(index), order=order.astype(index),
+                      points=np.asarray(pts), cov=np.asarray(cov), free_range=station.free_range)
 
 
 def window_votes(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndarray | None, k: float,
@@ -155,8 +157,8 @@ def votes_chunk(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.ndar
     # only rays through the facet say what is at its place: a neighbour's surface beside a thin face, or one
     # crossing a removed face's plane, is not the face (window_kernel: the test, per sample and window cell)
     window_sides(cells, judged, pos, normals, np.zeros((0, 3, 3)) if tris is None else np.ascontiguousarray(tris),
-                 FOOTPRINT * img.pixel * depth, var_e, img.eye, img.keys, img.starts, img.counts, img.points,
-                 img.cov6, k, counts, pooled)
+                 FOOTPRINT * img.pixel * depth, var_e, img.eye, img.keys, img.bounds, img.order, img.points,
+                 img.cov, k, counts, pooled)
     front, at, behind = counts
     # each point within k σ of the plane, their mean clearly behind it: a surface a noisy scanner measured a few
     # σ behind a removed part's place (the floor under a pipe, 5 cm below at σ 3 cm) is not the part

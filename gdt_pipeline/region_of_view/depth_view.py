@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 
 from ..types import Composite, Dataset, ItemView, RegionOfView
-from ..types.arrays import covariance6
 from .contact import closed_parts, in_contact
 from .depth import HIDDEN, NONE, PRESENT, THROUGH, DepthImage, Station, build_image, window_votes
 from .occlusion import blocked_by_confirmed, confirmed_facets
@@ -46,20 +45,18 @@ def depth_images(stations: list[Station], recent: list[Dataset], pixel_scale: fl
     images = []
     for st in stations:
         parts = [station_points(recent[i]) for i in st.datasets]
-        if len(parts) == 1:  # a station's one scan is not copied before its image sorts it (72 B a point)
-            pts, cov6 = parts[0][0], _packed(*parts[0])
+        if len(parts) == 1:  # a station's one scan: its image keeps the dataset's own arrays (96 B a point)
+            pts, cov = parts[0][0], _per_point(*parts[0])
         else:
             pts = np.vstack([p for p, _ in parts]) if parts else np.zeros((0, 3))
-            cov6 = np.concatenate([_packed(p, c) for p, c in parts]) if parts else np.zeros((0, 6))
-        images.append(build_image(st, pts, cov6, pixel_scale))
+            cov = np.concatenate([_per_point(p, c) for p, c in parts]) if parts else np.zeros((0, 3, 3))
+        images.append(build_image(st, pts, cov, pixel_scale))
     return images
 
 
-def _packed(pts: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Covariances packed as (N,6) rows, one per point (a shared (3,3) one broadcast, not copied)."""
-    if cov.ndim == 3:
-        return covariance6(cov)
-    return np.broadcast_to(covariance6(cov[None])[0], (len(pts), 6))
+def _per_point(pts: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Covariances as (N,3,3), one per point (a shared (3,3) one broadcast, not copied)."""
+    return cov if cov.ndim == 3 else np.broadcast_to(cov, (len(pts), 3, 3))
 
 
 @dataclass

@@ -65,11 +65,12 @@ def _through(eye, p, tri0, nrm, edges, margin: float) -> bool:
 
 
 @njit(parallel=True, cache=True)
-def window_sides(cell_keys, judged, pos, normals, tris, margin, var_e, eye, keys, starts, counts, points, cov6,
+def window_sides(cell_keys, judged, pos, normals, tris, margin, var_e, eye, keys, bounds, order, points, cov,
                  k: float, side_counts, pooled) -> None:
     """Fill ``side_counts`` (3, M: in front, at, behind) and ``pooled`` (2, M: offsets and variances of the points
     not in front) from each judged sample's window cells ``cell_keys`` (M, 9). ``tris`` (M, 3, 3) or an empty
-    array for point samples (every point of the window counts)."""
+    array for point samples (every point of the window counts). The station's occupied pixel c (of the sorted
+    ``keys``) holds the rows ``order[bounds[c]:bounds[c + 1]]`` of ``points`` and of ``cov`` (N, 3, 3)."""
     has_tris = tris.shape[0] > 0
     for s in prange(pos.shape[0]):
         if not judged[s]:
@@ -83,13 +84,15 @@ def window_sides(cell_keys, judged, pos, normals, tris, margin, var_e, eye, keys
             if cell < 0:
                 continue
             sum_offset, sum_var = 0.0, 0.0
-            for j in range(starts[cell], starts[cell] + counts[cell]):
-                if has_tris and not _through(eye, points[j], tris[s, 0], normals[s], edges, margin[s]):
+            for j in range(bounds[cell], bounds[cell + 1]):
+                i = order[j]
+                if has_tris and not _through(eye, points[i], tris[s, 0], normals[s], edges, margin[s]):
                     continue
-                offset = x * (points[j, 0] - pos[s, 0]) + y * (points[j, 1] - pos[s, 1]) + z * (points[j, 2]
+                offset = x * (points[i, 0] - pos[s, 0]) + y * (points[i, 1] - pos[s, 1]) + z * (points[i, 2]
                                                                                                 - pos[s, 2])
-                c = cov6[j]
-                var_p = c[0] * x * x + c[3] * y * y + c[5] * z * z + 2 * (c[1] * x * y + c[2] * x * z + c[4] * y * z)
+                c = cov[i]
+                var_p = (c[0, 0] * x * x + c[1, 1] * y * y + c[2, 2] * z * z
+                         + 2 * (c[0, 1] * x * y + c[0, 2] * x * z + c[1, 2] * y * z))
                 tol = k * math.sqrt(var_p + var_e[s])
                 side = 0 if offset > tol else (2 if offset < -tol else 1)
                 side_counts[side, s] += 1

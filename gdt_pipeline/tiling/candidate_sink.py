@@ -12,8 +12,6 @@ value for value, as the ones merged in memory, and the epoch's candidates never 
 from __future__ import annotations
 
 import dataclasses
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +22,7 @@ import numpy as np
 
 from ..errors import GdtError
 from ..memory import return_freed_memory
+from ..scratch import read_at, scratch_file, scratch_folder, write_at
 from ..types import Correspondences, GaussianUncertainty, MappedRows
 from ..types.correspondences import field_parts, scatter_rows
 
@@ -62,7 +61,7 @@ class _Held:
 class CandidateSink:
     """Per recent dataset, the finished tiles' candidates, their wide columns on disk in ``folder`` (TMPDIR)."""
 
-    folder: Path = field(default_factory=lambda: Path(tempfile.gettempdir()))
+    folder: Path = field(default_factory=scratch_folder)
     held: dict[int, dict[int, _Held]] = field(default_factory=dict)
     _file: IO[bytes] | None = None
     _end: int = 0
@@ -126,18 +125,19 @@ class CandidateSink:
 
     def _write(self, values: np.ndarray) -> _Column:
         if self._file is None:
-            # no name in the folder (O_TMPFILE): whatever kills the run, the kernel frees it with the descriptor
-            self._file = tempfile.TemporaryFile(prefix="gdt-candidates-", dir=self.folder)  # noqa: SIM115
+            self._file = scratch_file(self.folder, "gdt-candidates-")
         column = _Column(self._end, values.dtype, values.shape[1:])
-        _write_at(self._file, values, self._end, self.folder)
+        self._put(self._file, values, self._end)
         self._end += values.nbytes
         return column
 
+    def _put(self, file: IO[bytes], values: np.ndarray, offset: int) -> None:
+        write_at(file, values, offset, self.folder, "the tiles' candidates", "about 130 B a candidate, twice")
+
     def _read(self, column: _Column, start: int, stop: int) -> np.ndarray:
         assert self._file is not None
-        size = column.row_bytes * (stop - start)
-        raw = os.pread(self._file.fileno(), size, column.offset + column.row_bytes * start)
-        return np.frombuffer(raw, dtype=column.dtype).reshape(stop - start, *column.row_shape)
+        return read_at(self._file, column.dtype, (stop - start, *column.row_shape),
+                       column.offset + column.row_bytes * start)
 
     def _wide(self, held: list[_Held], maps: list[np.ndarray], total: int) -> dict[str, Any]:
         """The wide fields of the merged candidates: read-only maps of a scratch file in element order."""
@@ -147,7 +147,7 @@ class CandidateSink:
                 raise GdtError(f"tiles disagree on whether candidates carry {name!r}")
         if not names:
             return {}
-        merged_file = tempfile.TemporaryFile(prefix="gdt-candidates-merged-", dir=self.folder)  # noqa: SIM115
+        merged_file = scratch_file(self.folder, "gdt-candidates-merged-")
         out: dict[str, Any] = {}
         # per tile, the run of its candidates that lands in each piece of GATHER_ROWS merged rows (one search for
         # all columns)
@@ -180,7 +180,7 @@ class CandidateSink:
                 lo, hi = run[k], run[k + 1]
                 if hi > lo:
                     piece[places[lo:hi] - start] = self._read(column, int(lo), int(hi))
-            _write_at(into, piece, offset + first.row_bytes * start, self.folder)
+            self._put(into, piece, offset + first.row_bytes * start)
 
     def _query_models_back(self, held: list[_Held]) -> None:
         """The query's spilled covariances read back into memory, where tiles' models differ (some not Gaussian
@@ -218,15 +218,3 @@ def _mapped(file: IO[bytes], offset: int, dtype: np.dtype, shape: tuple[int, ...
         empty.setflags(write=False)
         return empty
     return MappedRows(file, dtype=dtype, mode="r", offset=offset, shape=shape)
-
-
-def _write_at(file: IO[bytes], values: np.ndarray, offset: int, folder: Path) -> None:
-    """``values`` written at ``offset``; a full disk is named with the folder to change."""
-    data = memoryview(np.ascontiguousarray(values).reshape(-1).view(np.uint8))
-    try:
-        while data:
-            done = os.pwrite(file.fileno(), data, offset)
-            data, offset = data[done:], offset + done
-    except OSError as exc:
-        raise GdtError(f"{folder}: writing the tiles' candidates to scratch space failed ({exc.strerror}); set "
-                       f"TMPDIR to a disk with room for about 130 B a candidate, twice") from exc

@@ -4,22 +4,20 @@ little else.
 A scanner writes its points in scan order: a run of 50,000 records is a thin wedge from the station to the far wall,
 and a tile of a tenth of a room touches a third of the runs (``docs/scale.md``). A second pass over the file writes
 each point, its element number and its fields into the cell's slot of one scratch file (an external bucket sort:
-the first pass counted the cells), then a box reads the rows of the cells it overlaps. Rows are written with
-``os.pwrite`` and read with ``os.pread``, so the process holds one piece of the file at a time, never a map of it. The
-scratch file has no name in the folder (``O_TMPFILE``), so a run that is killed leaves none behind.
+the first pass counted the cells), then a box reads the rows of the cells it overlaps. The file is a scratch file
+(``gdt_pipeline.scratch``): unnamed, written and read a piece at a time.
 """
 
 from __future__ import annotations
 
-import os
 import shutil
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
 from gdt_pipeline import InputError
+from gdt_pipeline.scratch import read_at, scratch_file, scratch_folder, write_at
 
 from .chunk_index import CellGrid, in_box
 
@@ -35,15 +33,14 @@ class CellCache:
                              *((name, dt, shape) for name, (dt, shape) in fields.items())])
         self.starts = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)])
         need = int(self.starts[-1]) * self.row.itemsize
-        self.folder = Path(folder or tempfile.gettempdir())
+        self.folder = scratch_folder(folder)
         free = shutil.disk_usage(self.folder).free
         if need > free:
             raise InputError(f"{self.folder}: sorting the points by cell needs {need / 2**20:,.0f} MB of scratch "
                              f"space, {free / 2**20:,.0f} MB are free (set TMPDIR to a larger disk)")
-        # a file without a name (O_TMPFILE): whatever kills the run, the kernel frees it with the last descriptor
-        self._file = tempfile.TemporaryFile(prefix="gdt-cells-", dir=self.folder)  # noqa: SIM115 (closed in close)
-        self.fd = self._file.fileno()
-        os.ftruncate(self.fd, need)
+        self._file = scratch_file(self.folder, "gdt-cells-")
+        self._file.truncate(need)
+        self._need = need
         self._cursor = self.starts[:-1].copy()
 
     def write(self, elements: np.ndarray, xyz: np.ndarray, fields: dict[str, np.ndarray]) -> None:
@@ -58,7 +55,8 @@ class CellCache:
         firsts = np.flatnonzero(np.r_[True, sorted_cells[1:] != sorted_cells[:-1]])
         for a, b in zip(firsts, np.r_[firsts[1:], len(order)], strict=True):
             cell = int(sorted_cells[a])
-            os.pwrite(self.fd, rows[a:b].tobytes(), int(self._cursor[cell]) * self.row.itemsize)
+            write_at(self._file, rows[a:b], int(self._cursor[cell]) * self.row.itemsize, self.folder,
+                     "the points sorted by cell", f"{self._need / 2**20:,.0f} MB")
             self._cursor[cell] += b - a
 
     def check_full(self) -> None:
@@ -77,8 +75,7 @@ class CellCache:
         for run in np.split(cells, breaks):
             start, stop = int(self.starts[run[0]]), int(self.starts[run[-1] + 1])
             if stop > start:
-                size = self.row.itemsize
-                rows = np.frombuffer(os.pread(self.fd, (stop - start) * size, start * size), dtype=self.row)
+                rows = read_at(self._file, self.row, (stop - start,), start * self.row.itemsize)
                 parts.append(rows[in_box(rows["xyz"], lower, upper)])
         rows = np.concatenate(parts) if parts else np.zeros(0, self.row)
         rows = rows[np.argsort(rows["element"], kind="stable")]

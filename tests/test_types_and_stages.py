@@ -111,6 +111,24 @@ def test_dataset_checks_and_immutability() -> None:
         ds.with_uncertainty(GaussianUncertainty(np.tile(np.eye(3), (3, 1, 1))))
 
 
+def test_a_dataset_rebuilt_shares_its_frozen_arrays_and_copies_writable_ones() -> None:
+    """A dataset given its uncertainty keeps the points it had (24 B a point were copied per rebuild); an array
+    someone can still write, or a read-only view of one, is copied."""
+    pts = np.random.default_rng(1).normal(size=(10, 3))
+    ds = Dataset("scan", "as-is", pts)
+    cov = np.tile(np.eye(3) * 1e-6, (10, 1, 1))
+    given = ds.with_uncertainty(GaussianUncertainty(cov))
+    assert given.points is ds.points
+    assert given.with_uncertainty(GaussianUncertainty(cov)).uncertainty.cov is not cov  # the caller's is copied
+    shared = GaussianUncertainty(given.uncertainty.cov)
+    assert shared.cov is given.uncertainty.cov
+    view = pts[:, :]
+    view.setflags(write=False)
+    held = Dataset("view", "as-is", view)
+    pts[0, 0] = 42.0  # written through the view's base
+    assert held.points[0, 0] != 42.0 and not np.shares_memory(held.points, pts)
+
+
 def test_transform_rotates_covariances() -> None:
     cov = np.diag([4.0, 1.0, 1.0])
     ds = Dataset("s", "as-is", np.array([[1.0, 0, 0]]), uncertainty=GaussianUncertainty(cov[None]))

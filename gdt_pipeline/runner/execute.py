@@ -31,7 +31,7 @@ import numpy as np
 from twin_store import RUN_LOCK_NAME, TwinStore, TwinStoreError, fault, writer_lock
 
 from ..errors import GdtError
-from ..memory import peak_rss_mb
+from ..memory import peak_rss_mb, return_freed_memory
 from ..names import UNITS
 from ..plugins import NullProgress, Progress, Registry, StageContext, StageSpec, TileExecutor, load_registry
 from ..provenance import (
@@ -307,6 +307,8 @@ def _run_chain_stage(run: _RunContext, epoch: EpochPlan, stage: StagePlan, info:
                        log=logging.getLogger(f"gdt.stage.{spec.name}"), progress=run.reporter.progress,
                        survey=stage_survey(spec, stage.params, visible, where))
     slots.update(run_stage(spec, ctx, where))
+    # a stage's freed working arrays stay resident in glibc's heap (memory.py); the next stage starts without them
+    return_freed_memory()
     dt = time.perf_counter() - t0
     run.reporter.stage_finished(epoch, s_index, spec, dt)
     return _stage_record(run, epoch, stage, digests, upstream, dt, ctx.notes)

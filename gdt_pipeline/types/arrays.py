@@ -47,10 +47,11 @@ def _shared_as_is(a: MappedRows, dtype: type | np.dtype[Any]) -> bool:
 
 def frozen_array(a: np.ndarray | list[Any] | tuple[Any, ...], dtype: type | np.dtype[Any],
                  ndim_shape: tuple[int | None, ...], what: str) -> np.ndarray:
-    """Return a read-only C-contiguous copy of ``a`` with the given dtype, checking its shape (None = any); a
-    ``MappedRows`` of that dtype is held as it is (read-only by construction, and copying it is what it avoids)."""
-    shared = isinstance(a, MappedRows) and _shared_as_is(a, dtype)
-    arr = a if shared and isinstance(a, MappedRows) else np.ascontiguousarray(np.asarray(a, dtype=dtype))
+    """Return a read-only C-contiguous copy of ``a`` with the given dtype, checking its shape (None = any). Held as
+    they are: a ``MappedRows`` of that dtype (read-only by construction, and copying it is what it avoids), and an
+    array this function already froze (a dataset rebuilt with its uncertainty would copy its points again)."""
+    shared = (isinstance(a, MappedRows) and _shared_as_is(a, dtype)) or _frozen_already(a, dtype)
+    arr = a if shared and isinstance(a, np.ndarray) else np.ascontiguousarray(np.asarray(a, dtype=dtype))
     if arr.ndim != len(ndim_shape) or any(s is not None and s != d for s, d in zip(ndim_shape, arr.shape, strict=True)):
         want = "(" + ", ".join("N" if s is None else str(s) for s in ndim_shape) + ")"
         raise ValueError(f"{what}: expected shape {want}, got {arr.shape}")
@@ -60,6 +61,14 @@ def frozen_array(a: np.ndarray | list[Any] | tuple[Any, ...], dtype: type | np.d
         arr = arr.copy()
     arr.setflags(write=False)
     return arr
+
+
+def _frozen_already(a: object, dtype: type | np.dtype[Any]) -> bool:
+    """Whether ``a`` is an array no one can write through: read-only, owning its memory, of ``dtype``, C-contiguous
+    (what ``frozen_array`` returns; a read-only view could still be written through its base)."""
+    if not isinstance(a, np.ndarray) or type(a) is not np.ndarray:
+        return False
+    return not a.flags.writeable and a.base is None and a.flags.c_contiguous and a.dtype == np.dtype(dtype)
 
 
 def broadcast_rows(arr: np.ndarray, n: int, what: str) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -38,8 +39,12 @@ def test_run_writes_structured_log_and_progress(cube_scene: CubeScene) -> None:
     assert [s["cache_key"] for s in lock["epochs"][1]["stages"]] == [e["cache_key"] for e in done[2:]]
 
 
-def test_usage_errors_exit_non_zero() -> None:
+def test_usage_errors_exit_non_zero(tmp_path: Path) -> None:
     res = run_gdt("run")
     assert res.returncode == 2 and "Missing argument" in res.stderr
+    log = tmp_path / "no-such-folder" / "run.jsonl"
+    res = run_gdt("run", "/nonexistent/wf.yaml", "--log-file", str(log))
+    assert res.returncode == 2 and "'--log-file'" in res.stderr and str(log) in res.stderr, res.stderr
+    assert "No such file or directory" in res.stderr and "internal error" not in res.stderr
     res = run_gdt("validate", "/nonexistent/wf.yaml")
     assert res.returncode == 1 and "workflow file not found" in res.stdout

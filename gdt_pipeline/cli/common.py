@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import click
 from rich.console import Console
 from rich.text import Text
 
@@ -48,7 +49,11 @@ def setup_logging(verbose: int, log_file: Path | None) -> None:
     console.setLevel(logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG)
     root.addHandler(console)
     if log_file is not None:
-        handler = JsonLinesHandler(log_file)
+        try:
+            handler = JsonLinesHandler(log_file)
+        except OSError as exc:  # a usage error, not a crash: name the file and why
+            raise click.BadParameter(f"{log_file}: cannot append to it ({exc.strerror})",
+                                     param_hint="'--log-file'") from exc
         handler.setLevel(logging.DEBUG)
         root.addHandler(handler)
     root.propagate = False

@@ -1,10 +1,10 @@
 """Scale: the default chain on 1 M, 10 M and 50 M simulated points, whole and tiled on each executor (issue 21).
 
 The scene is the speed benchmark's (``speed_scene``: the counter CAD part with a block added, four structured-light
-stations). Per size and way of running, ``gdt run`` in a child process, after one untimed warm-up run that compiles
-the kernels; printed: wall seconds, points/s, the peak of the summed RSS of the whole process tree (the run, its
-pool or Dask workers and scheduler; sampled every 0.2 s), bytes per point of the tree and of the main process alone
-(its VmHWM, from the run's log), the tiles and the seconds per stage.
+stations). Per size and way of running, ``gdt run`` in a child process, after one untimed tiled warm-up run on a
+200 k-point scene that compiles the kernels; printed: wall seconds, points/s, the peak of the summed RSS of the
+whole process tree (the run, its pool or Dask workers and scheduler; sampled every 0.2 s), bytes per point of the
+tree and of the main process alone (its VmHWM, from the run's log), the tiles and the seconds per stage.
 
     .venv/bin/python bench/scale.py [--sizes 1000000,10000000,50000000] [--ways whole,serial,processes,dask]
         [--tile-elements 500000] [--workers 2] [--repeats 1]
@@ -35,6 +35,8 @@ SAMPLE_SECONDS = 0.2
 # A way is not tried at a size where the bytes a point it took at the last size would fill more than this share of
 # the memory free now.
 MEMORY_SHARE = 0.9
+# The warm-up scene: big enough that every kernel runs on real tiles, small enough to take seconds.
+WARM_UP_POINTS = 200_000
 
 
 def tree_rss(proc: psutil.Process) -> int:
@@ -160,6 +162,16 @@ def compare(folder: Path, way: str) -> str:
             f"difference {worst:.3g}")
 
 
+def warm_up(args: argparse.Namespace) -> None:
+    """One untimed tiled run on a small scene of the same kind: it compiles the kernels (cached on disk), which a
+    full run of the first size did at the cost of that run's wall time."""
+    scene = build(args.out / "warm-up", WARM_UP_POINTS, counter=args.cad)
+    small = argparse.Namespace(tile_elements=WARM_UP_POINTS // 4, workers=args.workers)
+    res = run_way(scene["workflow"].parent, "serial", small)
+    if res["code"] != 0:
+        raise SystemExit(f"the warm-up run failed (exit {res['code']}): {res['error'].strip()}")
+
+
 def main() -> None:
     """Build each size's scene and run it every way asked, printing as it goes."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -171,7 +183,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench" / "scale")
     ap.add_argument("--cad", type=Path, default=COUNTER)
     args = ap.parse_args()
-    warmed = False
+    warm_up(args)
     per_point: dict[str, float] = {}
     for size in (int(s) for s in args.sizes.split(",")):
         t0 = time.perf_counter()
@@ -179,9 +191,6 @@ def main() -> None:
         folder = scene["workflow"].parent
         print(f"\n== {scene['points']:,} points ({scene['source']}; scene built in {time.perf_counter() - t0:.0f} s),"
               f" tiles of at most {args.tile_elements:,} elements, {args.workers} workers ==", flush=True)
-        if not warmed:
-            run_way(folder, "serial", args)  # compiles the kernels (cached); not counted
-            warmed = True
         for way in args.ways.split(","):
             need = per_point.get(way, 0.0) * scene["points"]
             free = psutil.virtual_memory().available

@@ -4,14 +4,21 @@ glibc's malloc serves arrays below its mmap threshold (which rises to 32 MB once
 heap, and keeps the heap's freed pages. A tile's results are arrays of that size: once merged and let go, their
 pages stay resident, and the merged arrays, above the threshold, come on top. ``malloc_trim`` hands them back. There
 is no Python or numpy call for it, hence ctypes; elsewhere than glibc this does nothing.
+
+Pages of a scratch file mapped into the process (the scans' covariances kept on disk, ``tiling.RecentSink``) count in
+its resident set once touched, though the kernel could drop them: they are let go of too (``MADV_DONTNEED``; they stay
+in the page cache, and a later read maps them again).
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import functools
+import mmap
 import resource
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 
@@ -26,11 +33,28 @@ def _trim() -> Callable[[int], int] | None:
     return getattr(libc, "malloc_trim", None)
 
 
+# the scratch-file maps alive, whose pages ``return_freed_memory`` lets go of (weak: a map no one holds is closed)
+_SCRATCH_MAPS: weakref.WeakSet[mmap.mmap] = weakref.WeakSet()
+
+
+def track_scratch_map(pages: mmap.mmap) -> None:
+    """Have ``return_freed_memory`` let go of this scratch-file map's resident pages too."""
+    _SCRATCH_MAPS.add(pages)
+
+
+def release_pages(pages: mmap.mmap) -> None:
+    """Let go of a file map's resident pages (they stay in the page cache; a closed map has none)."""
+    with contextlib.suppress(ValueError, OSError):
+        pages.madvise(mmap.MADV_DONTNEED)
+
+
 def return_freed_memory() -> None:
-    """Hand the heap's free pages back to the system (glibc only; a few milliseconds)."""
+    """Hand the heap's free pages back to the system (glibc only; a few milliseconds), and the scratch-file maps'."""
     trim = _trim()
     if trim is not None:
         trim(0)
+    for pages in list(_SCRATCH_MAPS):
+        release_pages(pages)
 
 
 def peak_rss_mb() -> float:

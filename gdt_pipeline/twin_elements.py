@@ -8,33 +8,37 @@ from typing import Any
 
 import numpy as np
 
-from twin_store import ElementSet, TwinStore
+from twin_store import ElementSet, SetsOnDemand, TwinStore
 
-from .types import ChangeState, Composite, Dataset
+from .types import ChangeState, Composite, CompositeItem, Dataset
 
 
-def composite_to_elements(composite: Composite) -> list[ElementSet]:
-    """One element set per composite item, with its uncertainty, states and scores."""
-    out = []
-    for it in composite.items:
-        ds = it.dataset
-        n = ds.n_elements
-        unc = ds.uncertainty
-        arrays: dict[str, np.ndarray | None] = {"covariance": None, "half_widths": None, "rotation": None}
-        if unc is not None:
-            arrays.update(unc.stored(n))
-        out.append(ElementSet(key=it.key, kind=ds.kind, points=ds.points, faces=ds.faces,
-                              uncertainty_model="none" if unc is None else unc.model, **arrays,
-                              uncertainty_summary=np.full(n, np.nan) if unc is None else np.asarray(unc.summary(n)),
-                              state=it.state, score=it.score.astype(np.float32), source_epoch=it.source_epoch,
-                              visible=it.visible,
-                              p_value=None if it.p_value is None else it.p_value.astype(np.float32),
-                              reason=it.reason, reason_ratio=it.reason_ratio.astype(np.float32),
-                              area_seen=_f32(it.area_seen), area_removed=_f32(it.area_removed),
-                              intensity=_f32(ds.fields.get("intensity")), scan_color=_f32(ds.fields.get("color")),
-                              identity=dict(ds.meta) or None, classification=_classes(ds),
-                              item={"epoch": it.epoch, "role": ds.role, "name": ds.name}))
-    return out
+def composite_to_elements(composite: Composite) -> SetsOnDemand:
+    """One element set per composite item, with its uncertainty, states and scores, each made as the writer reads it
+    (its packed covariances and float32 columns are 100 B a point: one set's at a time, not the epoch's)."""
+    items = composite.items
+    return SetsOnDemand([it.key for it in items], lambda i: _element_set(items[i]))
+
+
+def _element_set(it: CompositeItem) -> ElementSet:
+    """The element set of one composite item."""
+    ds = it.dataset
+    n = ds.n_elements
+    unc = ds.uncertainty
+    arrays: dict[str, np.ndarray | None] = {"covariance": None, "half_widths": None, "rotation": None}
+    if unc is not None:
+        arrays.update(unc.stored(n))
+    return ElementSet(key=it.key, kind=ds.kind, points=ds.points, faces=ds.faces,
+                      uncertainty_model="none" if unc is None else unc.model, **arrays,
+                      uncertainty_summary=np.full(n, np.nan) if unc is None else np.asarray(unc.summary(n)),
+                      state=it.state, score=it.score.astype(np.float32), source_epoch=it.source_epoch,
+                      visible=it.visible,
+                      p_value=None if it.p_value is None else it.p_value.astype(np.float32),
+                      reason=it.reason, reason_ratio=it.reason_ratio.astype(np.float32),
+                      area_seen=_f32(it.area_seen), area_removed=_f32(it.area_removed),
+                      intensity=_f32(ds.fields.get("intensity")), scan_color=_f32(ds.fields.get("color")),
+                      identity=dict(ds.meta) or None, classification=_classes(ds),
+                      item={"epoch": it.epoch, "role": ds.role, "name": ds.name})
 
 
 def _classes(ds: Dataset) -> np.ndarray | None:

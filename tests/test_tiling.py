@@ -4,6 +4,7 @@ keep every element and candidate, and the runner's chain runs are cut where they
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,7 +30,7 @@ from gdt_pipeline.tiling import (
     take_candidates,
     tile_members,
 )
-from gdt_pipeline.types import concat_uncertainty
+from gdt_pipeline.types import MappedRows, concat_uncertainty
 
 
 def _cloud(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -285,10 +286,12 @@ def test_a_tile_takes_the_reach_of_the_elements_near_it() -> None:
     assert shared == [0.4]
 
 
+@pytest.mark.parametrize("on_disk", [False, True])
 @pytest.mark.parametrize("mixed", [False, True])
-def test_uncertainty_merged_as_tiles_finish_equals_the_concatenation(mixed: bool) -> None:
-    """Covariances written into place tile by tile are the concatenation put in element order, also when one tile's
-    model (a shared row) cannot be written into place."""
+def test_uncertainty_merged_as_tiles_finish_equals_the_concatenation(mixed: bool, on_disk: bool, tmp_path: Path
+                                                                      ) -> None:
+    """Covariances written into place tile by tile, in memory or in a scratch file, are the concatenation put in
+    element order, also when one tile's model (a shared row) cannot be written into place."""
     from gdt_pipeline.tiling.merge import RecentSink, UncertaintyPiece, merge_recent
 
     rng = np.random.default_rng(3)
@@ -305,7 +308,7 @@ def test_uncertainty_merged_as_tiles_finish_equals_the_concatenation(mixed: bool
         pieces[2] = UncertaintyPiece(GaussianUncertainty(np.eye(3)[None] * 2.0, dof=4.0), len(members[2]))
     order = ElementOrder.check("s", members, n)
     want = merge_recent(ds, pieces, order)
-    sink = RecentSink([n])
+    sink = RecentSink([n], tmp_path if on_disk else None)
     held = []
     for piece, m in zip(pieces, members, strict=True):
         one = [piece]
@@ -315,3 +318,76 @@ def test_uncertainty_merged_as_tiles_finish_equals_the_concatenation(mixed: bool
     got = sink.merged(ds, 0, held, members, order)
     assert np.array_equal(got.uncertainty.cov, want.uncertainty.cov) and np.array_equal(got.uncertainty.cov, cov)
     assert got.uncertainty.dof == 4.0
+    assert isinstance(got.uncertainty.cov, MappedRows) == (on_disk and not mixed)
+    assert not got.uncertainty.cov.flags.writeable and not sink.files and list(tmp_path.iterdir()) == []
+
+
+def test_covariances_kept_on_a_full_disk_name_the_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A scratch folder without room for the covariances stops the run before any tile writes there, naming the
+    folder and the room it needs."""
+    import errno
+    import os
+
+    from gdt_pipeline.tiling.merge import RecentSink, UncertaintyPiece
+
+    def full(fd: int, offset: int, length: int) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    sink = RecentSink([10_000_000], tmp_path)
+    piece = UncertaintyPiece(GaussianUncertainty(np.tile(np.eye(3), (4, 1, 1))), 4)
+    with pytest.raises(GdtError, match=rf"{tmp_path}.*0\.72 GB.*No space left on device.*TMPDIR"):
+        sink.absorb([piece], [np.arange(4)])
+    assert not sink.files and list(tmp_path.iterdir()) == []
+
+
+def _resident_kb(path_part: str) -> int:
+    """The resident kB of this process's maps of files whose name holds ``path_part`` (/proc/self/smaps)."""
+    total, counting = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        head = line.split()
+        if head and "-" in head[0] and len(head) >= 5:
+            counting = len(head) >= 6 and path_part in line
+        elif counting and line.startswith("Rss:"):
+            total += int(head[1])
+    return total
+
+
+def _scratch_rows(folder: Path, values: np.ndarray) -> MappedRows:
+    """``values`` written to a scratch file and mapped back read-only (a name in ``folder``, so smaps shows it)."""
+    path = folder / "rows.bin"
+    values.tofile(path)
+    return MappedRows(path, dtype=values.dtype, mode="r", shape=values.shape)
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="needs /proc/self/smaps (Linux)")
+def test_scratch_maps_let_go_of_their_pages_when_memory_is_returned(tmp_path: Path) -> None:
+    """A pass over a scratch file's rows leaves its pages resident; ``return_freed_memory`` lets go of them, and the
+    rows still read the same."""
+    from gdt_pipeline.memory import return_freed_memory
+
+    values = np.random.default_rng(1).normal(size=(200_000, 3, 3))
+    rows = _scratch_rows(tmp_path, values)
+    assert float(np.asarray(rows).view(np.ndarray).sum()) == pytest.approx(float(values.sum()))
+    assert _resident_kb("rows.bin") > 10_000  # 14 MB read
+    return_freed_memory()
+    assert _resident_kb("rows.bin") == 0
+    assert np.array_equal(rows[np.array([0, 199_999])], values[[0, 199_999]])
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="needs /proc/self/smaps (Linux)")
+def test_packed_covariances_of_a_scratch_map_equal_the_in_memory_ones_and_leave_no_pages(tmp_path: Path) -> None:
+    """What the twin stores of covariances kept on disk (packed rows, the RMS summary) is what it stores of the same
+    rows in memory, and the passes, a piece at a time, leave no page of the file resident."""
+    from gdt_pipeline.types import arrays
+
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=(arrays.PASS_PIECE * 2 + 17, 3, 3))
+    values = a @ np.swapaxes(a, 1, 2)
+    rows = _scratch_rows(tmp_path, values)
+    on_disk = GaussianUncertainty.trusted(rows, None)
+    in_memory = GaussianUncertainty(values)
+    assert on_disk.covariance(len(values)) is rows
+    assert np.array_equal(on_disk.stored(len(values))["covariance"], in_memory.stored(len(values))["covariance"])
+    assert np.array_equal(on_disk.summary(len(values)), in_memory.summary(len(values)))
+    assert _resident_kb("rows.bin") == 0

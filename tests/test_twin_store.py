@@ -160,3 +160,36 @@ def test_usd_validation_finds_no_errors(twin) -> None:
     assert not errors
     flat = Usd.Stage.Open(stage.Flatten())
     assert not [e for e in ctx.Validate(flat) if e.GetType() == UsdValidation.ValidationErrorType.Error]
+
+
+def test_sets_made_on_demand_are_made_one_at_a_time_and_written_as_the_sets_themselves(tmp_path: Path) -> None:
+    """An epoch handed as sets made on demand is written as the same sets handed as a list; the writer checks the keys
+    without making a set, makes each once, and a set made with another key than announced is an error."""
+    from twin_store import SetsOnDemand, set_keys
+
+    sets = [mesh_set(), points_set()]
+    made: list[int] = []
+
+    def make(i: int) -> ElementSet:
+        made.append(i)
+        return sets[i]
+
+    lazy = SetsOnDemand([s.key for s in sets], make)
+    assert set_keys(lazy) == ["E0_part", "E1_scan"] and made == []
+    listed = TwinStore.create(tmp_path / "listed")
+    listed.write_epoch("E0", sets, {})
+    on_demand = TwinStore.create(tmp_path / "on_demand")
+    on_demand.write_epoch("E0", lazy, {})
+    assert made == [0, 1]
+    for want, got in zip(listed.read_epoch("E0"), on_demand.read_epoch("E0"), strict=True):
+        assert got.key == want.key
+        assert np.array_equal(got.points, want.points) and np.array_equal(got.state, want.state)
+        assert np.allclose(got.uncertainty_summary, want.uncertainty_summary)
+        if want.covariance is not None:
+            assert np.allclose(got.covariance, want.covariance)
+    wrong = SetsOnDemand(["E0_part", "other"], lambda i: sets[i])
+    with pytest.raises(ValueError, match="element set 1: made with key 'E1_scan', announced as 'other'"):
+        list(wrong)
+    with pytest.raises(IndexError):
+        lazy[2]
+    assert [s.key for s in lazy[::-1]] == ["E1_scan", "E0_part"]

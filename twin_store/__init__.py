@@ -4,7 +4,8 @@ Depends on numpy and pxr only. Modules: ``names`` (codes, paths, primvar docs), 
 USD prim), ``segments`` (the Segment record), ``guides`` (regions of view, segments as prims), ``history`` (one
 entry per epoch, diffs), ``layers`` (atomic layer files), ``integrity`` (layer sha256s, what a twin folder owns),
 ``swap`` (replacing a whole twin, recovery after a kill), ``faults`` (the kill tests' injection points), ``lock``
-(the writer lock), ``lean`` (set by set, value by value reads), ``store`` (TwinStore)."""
+(the writer lock), ``lean`` (set by set, value by value reads), ``set_source`` (sets made as the writer reads
+them), ``store`` (TwinStore)."""
 
 from .elements import ElementSet, display_colours
 from .errors import TwinStoreError
@@ -16,6 +17,7 @@ from .lock import lock_path, writer_lock
 from .names import REASON_NAMES, RUN_LOCK_NAME, STATE_COLORS, STATE_NAMES, state_colours
 from .payloads import preview_rows
 from .segments import Segment
+from .set_source import SetsOnDemand, set_keys
 from .store import TwinStore
 from .swap import partial_path, recover_leftovers, swap_into_place
 
@@ -30,6 +32,7 @@ __all__ = [
     "LeanSet",
     "Segment",
     "SetDiff",
+    "SetsOnDemand",
     "TwinStore",
     "TwinStoreError",
     "display_colours",
@@ -39,6 +42,7 @@ __all__ = [
     "partial_path",
     "preview_rows",
     "recover_leftovers",
+    "set_keys",
     "sha256_file",
     "state_colours",
     "swap_into_place",

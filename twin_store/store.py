@@ -35,6 +35,7 @@ from .lock import writer_lock
 from .names import EPOCH_DIR, REASON_NAMES, ROOT_NAME, STATE_NAMES, TWIN_PRIM
 from .payloads import define_payload_set, relative_payloads, restate_preview, wants_payload
 from .segments import Segment
+from .set_source import set_keys
 from .swap import leftover_advice, leftovers
 
 
@@ -220,7 +221,7 @@ class TwinStore:
         existing = self.epochs()
         if epoch_id in existing:
             raise TwinStoreError(f"{self._path}: epoch {epoch_id!r} is already in the twin")
-        keys = [e.key for e in elements]
+        keys = set_keys(elements)
         if len(set(keys)) != len(keys):
             raise TwinStoreError(f"epoch {epoch_id}: duplicate element set keys")
         return existing
@@ -233,7 +234,7 @@ class TwinStore:
         known = {c.GetName(): c for c in twin.GetChildren()} if twin else {}
         if not twin:
             UsdGeom.Xform.Define(stage, TWIN_PRIM)
-        missing = sorted(k for k in set(known) - {e.key for e in elements} if not _retired(known[k]))
+        missing = sorted(k for k in set(known) - set(set_keys(elements)) if not _retired(known[k]))
         if missing:
             raise TwinStoreError(f"epoch {epoch_id}: element sets {missing} of earlier epochs are missing; removal is "
                                  f"expressed by state and visibility, never by dropping a set (only a set with no "

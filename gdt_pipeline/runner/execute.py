@@ -356,6 +356,8 @@ def _write_epoch(store: TwinStore, prov: EpochProvenance, slots: dict[str, Any],
     rov = slots.get("rov")
     layer = store.write_epoch(prov.epoch.id, composite_to_elements(composite), prov.to_dict(),
                               None if rov is None else (rov.vertices, rov.faces), composite.segments)
+    log.info("epoch written", extra={"event": {"epoch": prov.epoch.id, "layer": Path(layer).name,
+                                               "peak_rss_mb": round(peak_rss_mb(), 1)}})
     return EpochSummary(prov.epoch.id, composite.counts(), seconds, target / "epochs" / Path(layer).name)
 
 

@@ -24,6 +24,7 @@ import numpy as np
 from ..errors import GdtError
 from ..memory import return_freed_memory
 from ..plugins import ExecutorOptions, Registry, StageContext, TileBounds, TileExecutor
+from ..scratch import scratch_folder
 from ..slots import valid
 from ..tiling import (
     CandidateSink,
@@ -283,8 +284,8 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
     log.info("tiles: %d of %.4g with halos of %.4g to %.4g for %s", len(cutter.members), cutter.size,
              min(halos, default=0.0), max(halos, default=0.0), ", ".join(st.spec.name for st in stages))
     provides = {s for st in stages for s in st.spec.provides}
-    sink = RecentSink([ds.n_elements for ds in slots["recent"]])
-    spill = "correspondences" in provides and session.options.spill_candidates
+    sink = RecentSink([ds.n_elements for ds in slots["recent"]], scratch_folder() if session.options.spill else None)
+    spill = "correspondences" in provides and session.options.spill
     with CandidateSink() if spill else contextlib.nullcontext() as candidates:
 
         def finished(result: TileResult) -> None:

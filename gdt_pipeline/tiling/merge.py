@@ -9,13 +9,27 @@ element's winning candidate, mean the same in both.
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
 
 import numpy as np
 
 from ..errors import GdtError
-from ..types import Change, Correspondences, Dataset, GaussianUncertainty, Scores, Uncertainty, concat_uncertainty
+from ..memory import release_pages
+from ..scratch import scratch_file
+from ..types import (
+    Change,
+    Correspondences,
+    Dataset,
+    GaussianUncertainty,
+    MappedRows,
+    Scores,
+    Uncertainty,
+    concat_uncertainty,
+)
 from .candidate_sink import candidate_places
 
 
@@ -48,14 +62,40 @@ class UncertaintyPiece:
     n_elements: int
 
 
+# Bytes a point's covariance takes (3x3 float64): what a scratch file of the scans' covariances reserves per point.
+COV_BYTES = 72
+
+
 @dataclass
 class RecentSink:
     """Per recent dataset, the tiles' per-element Gaussian covariances written into place as each tile finishes, so
-    that the run holds the merged rows and one tile's, not every tile's plus their concatenation (144 B a point)."""
+    that the run holds the merged rows and one tile's, not every tile's plus their concatenation (144 B a point).
+
+    With a ``folder`` the merged rows live in a scratch file there, mapped (72 B a point on disk, none in memory): the
+    writer lets go of the pages each tile wrote, and the merged dataset holds a read-only ``MappedRows`` of it, whose
+    reads take pieces (``types.arrays``)."""
 
     sizes: Sequence[int]
+    folder: Path | None = None
     cov: dict[int, np.ndarray] = field(default_factory=dict)
     dof: dict[int, float | None] = field(default_factory=dict)
+    files: dict[int, IO[bytes]] = field(default_factory=dict)
+
+    def _rows(self, d: int) -> np.ndarray:
+        """Room for dataset ``d``'s covariances: in memory, or a scratch file reserved in full (so that a full disk
+        is an error now, naming the folder, not a SIGBUS in the middle of a tile) and mapped for writing."""
+        n = self.sizes[d]
+        if self.folder is None or n == 0:
+            return np.empty((n, 3, 3))
+        file = scratch_file(self.folder, "gdt-cov-")
+        try:
+            os.posix_fallocate(file.fileno(), 0, n * COV_BYTES)
+        except OSError as exc:
+            file.close()
+            raise GdtError(f"{self.folder}: reserving {n * COV_BYTES / 1e9:.3g} GB of scratch space for the scans' "
+                           f"covariances failed ({exc.strerror}); set TMPDIR to a disk with room for them") from exc
+        self.files[d] = file
+        return np.memmap(file, dtype=np.float64, mode="r+", shape=(n, 3, 3))
 
     def absorb(self, pieces: list[UncertaintyPiece | None], members: Sequence[np.ndarray]) -> None:
         """Write each piece that is a per-element Gaussian with the dataset's dof into place (``members[d]``: its
@@ -67,8 +107,11 @@ class RecentSink:
             if d in self.dof and self.dof[d] != u.dof:
                 continue
             if d not in self.cov:
-                self.cov[d], self.dof[d] = np.empty((self.sizes[d], 3, 3)), u.dof
+                self.cov[d], self.dof[d] = self._rows(d), u.dof
             self.cov[d][members[d]] = u.cov
+            pages = getattr(self.cov[d], "_mmap", None)
+            if pages is not None:  # the rows written are in the page cache; the process need not hold them
+                release_pages(pages)
             pieces[d] = None
 
     def merged(self, ds: Dataset, d: int, pieces: Sequence[UncertaintyPiece | None], members: Sequence[np.ndarray],
@@ -81,9 +124,30 @@ class RecentSink:
             whole = GaussianUncertainty.trusted(cov, self.dof[d])  # rows of unabsorbed tiles are unset
             full = [UncertaintyPiece(whole.take(m), len(m)) if p is None else p
                     for p, m in zip(pieces, members, strict=True)]
-            return merge_recent(ds, full, order)
-        cov.setflags(write=False)
-        return dataclasses.replace(ds, uncertainty=GaussianUncertainty.trusted(cov, self.dof[d]))
+            merged = merge_recent(ds, full, order)
+            self._close(d)
+            return merged
+        rows = self._read_only(d, cov)
+        return dataclasses.replace(ds, uncertainty=GaussianUncertainty.trusted(rows, self.dof[d]))
+
+    def _read_only(self, d: int, cov: np.ndarray) -> np.ndarray:
+        """The merged rows, read-only: the array itself, or a ``MappedRows`` of the scratch file (its writer map let
+        go of; the map holds the file open, so its descriptor is closed here)."""
+        file = self.files.get(d)
+        if file is None:
+            cov.setflags(write=False)
+            return cov
+        cov.flush()
+        rows = MappedRows(file, dtype=np.float64, mode="r", shape=cov.shape)
+        del cov
+        self._close(d)
+        return rows
+
+    def _close(self, d: int) -> None:
+        """Close dataset ``d``'s scratch file, if any (maps of it keep it until they go)."""
+        file = self.files.pop(d, None)
+        if file is not None:
+            file.close()
 
 
 def merge_recent(ds: Dataset, pieces: Sequence[Dataset | UncertaintyPiece], order: ElementOrder) -> Dataset:

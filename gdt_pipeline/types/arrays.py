@@ -4,19 +4,32 @@
 from __future__ import annotations
 
 import mmap
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Self, cast
 
 import numpy as np
+
+from ..memory import release_pages, track_scratch_map
 
 # Rows a ``MappedRows`` gathers before it lets go of the file pages it touched: random rows touch a page each, so
 # this bounds the pages mapped at once (32 MB) whatever the number of rows taken.
 MAPPED_PIECE = 8192
+# Rows a pass over all of a ``MappedRows`` (``by_pieces``) reads before it lets go of their pages: 18 MB of covariances.
+PASS_PIECE = 1 << 18
 
 
 class MappedRows(np.memmap):
     """A read-only array over a scratch file (``np.memmap``) whose rows are taken a piece at a time: after each piece
     the pages it touched leave the process (``MADV_DONTNEED``; they stay in the page cache), so a process that takes
-    a hundred thousand random rows of a 10⁸-row file holds those rows, not the pages around them."""
+    a hundred thousand random rows of a 10⁸-row file holds those rows, not the pages around them. Its map is one
+    ``memory.return_freed_memory`` lets go of between stages."""
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Self:
+        rows = cast(Self, super().__new__(cls, *args, **kwargs))  # np.memmap's stubs say it makes a memmap
+        pages = getattr(rows, "_mmap", None)
+        if pages is not None:
+            track_scratch_map(pages)
+        return rows
 
     def __getitem__(self, index: Any) -> Any:
         rows = _row_selection(index, self.shape[0] if self.ndim else 0)
@@ -29,6 +42,24 @@ class MappedRows(np.memmap):
             out[start:start + MAPPED_PIECE] = plain[rows[start:start + MAPPED_PIECE]]
             pages.madvise(mmap.MADV_DONTNEED)
         return out
+
+
+def by_pieces(rows: np.ndarray, per_rows: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """``per_rows`` of every row, row for row; over a ``MappedRows``, ``PASS_PIECE`` rows at a time, letting go of the
+    pages each piece read, so that a pass over a scratch file leaves the process holding the result, not the file."""
+    pages = getattr(rows, "_mmap", None) if isinstance(rows, MappedRows) else None
+    if pages is None:
+        return per_rows(rows)
+    plain = rows.view(np.ndarray)
+    out: np.ndarray | None = None
+    for start in range(0, max(len(plain), 1), PASS_PIECE):
+        part = per_rows(plain[start:start + PASS_PIECE])
+        if out is None:
+            out = np.empty((len(plain), *part.shape[1:]), dtype=part.dtype)
+        out[start:start + len(part)] = part
+        release_pages(pages)
+    assert out is not None
+    return out
 
 
 def _row_selection(index: Any, n: int) -> np.ndarray | None:
@@ -83,7 +114,7 @@ _UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 
 def covariance6(cov: np.ndarray) -> np.ndarray:
     """``(N,3,3)`` symmetric matrices packed as ``(N,6)`` in the twin's order xx xy xz yy yz zz."""
-    return cov[:, _UPPER[0], _UPPER[1]]
+    return by_pieces(cov, lambda rows: rows[:, _UPPER[0], _UPPER[1]])
 
 
 def covariance33(cov6: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ from typing import Literal
 
 import numpy as np
 
-from .arrays import broadcast_rows, covariance6, frozen_array
+from .arrays import broadcast_rows, by_pieces, covariance6, frozen_array
 from .densities import gauss_pdf, gauss_pdf_many, psd_factor, t_pdf_many
 from .region99 import BOX_99, CHI2_3_99, Region99, t3_radius2_99
 
@@ -54,14 +54,16 @@ class GaussianUncertainty:
         return int(self.cov.shape[0])
 
     def covariance(self, n: int) -> np.ndarray:
-        """Covariances (a t's scale matrices) broadcast to ``(n,3,3)`` (a view when a single one is shared)."""
+        """Covariances (a t's scale matrices) broadcast to ``(n,3,3)`` (a view when a single one is shared; the rows
+        themselves when there is one per element, so that rows kept in a scratch file stay a ``MappedRows``)."""
         broadcast_rows(self.cov, n, "gaussian covariance")
-        return np.broadcast_to(self.cov, (n, 3, 3))
+        return self.cov if self.rows == n else np.broadcast_to(self.cov, (n, 3, 3))
 
     def summary(self, n: int) -> np.ndarray:
         """RMS standard deviation (a t's scale) per element, sqrt(trace(Σ)/3): a scalar for display and reports."""
         broadcast_rows(self.cov, n, "gaussian covariance")
-        return np.broadcast_to(np.sqrt(np.trace(self.cov, axis1=1, axis2=2) / 3.0), (n,))
+        rms = by_pieces(self.cov, lambda rows: np.sqrt(np.trace(rows, axis1=1, axis2=2) / 3.0))
+        return np.broadcast_to(rms, (n,))
 
     def take(self, idx: np.ndarray) -> GaussianUncertainty:
         """The uncertainty of the elements ``idx`` (a shared covariance stays shared)."""

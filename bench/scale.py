@@ -93,7 +93,7 @@ def stage_seconds(log: Path) -> dict[str, float]:
 
 def main_peak_mb(log: Path) -> float | None:
     """The peak RSS (MB) of the process that ran ``gdt run`` itself, workers not counted: the largest VmHWM its
-    stage records logged."""
+    stage and epoch-written records logged."""
     peaks = [json.loads(line).get("peak_rss_mb") for line in log.read_text().splitlines()] if log.exists() else []
     peaks = [p for p in peaks if p is not None]
     return max(peaks) if peaks else None

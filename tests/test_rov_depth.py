@@ -152,3 +152,27 @@ def test_the_view_does_not_depend_on_the_order_of_the_points(registry, tmp_path)
         views.append((removed.in_view, removed.matched, removed.removed_fraction))
     for a, b in zip(*views, strict=True):
         assert np.array_equal(a, b)
+
+
+def test_point_spacing_over_chunks_equals_one_tree(monkeypatch):
+    """The spacing over several arrays, a chunk's tree at a time, is the one tree's over their rows stacked, to the
+    bit: duplicates, chunk edges and rows whose nearest neighbour lies in another array included."""
+    import importlib
+
+    from scipy.spatial import cKDTree
+
+    look = importlib.import_module("gdt_pipeline.region_of_view.look")  # the package's ``look`` is the function
+
+    rng = np.random.default_rng(5)
+    parts = [rng.uniform(0, 1, (n, 3)) for n in (3_001, 1, 4_500, 2)]
+    parts[2][10] = parts[0][0]  # a duplicate across arrays: spacing 0 for that row
+    stacked = np.vstack(parts)
+    step = max(1, len(stacked) // 500)
+    d, _ = cKDTree(stacked).query(stacked[::step], k=2)
+    monkeypatch.setattr(look, "SPACING_SAMPLE", 500)
+    monkeypatch.setattr(look, "SPACING_CHUNK", 1_000)
+    rows = np.arange(0, len(stacked), step)
+    np.testing.assert_array_equal(look._nearest_other(parts, rows), d[:, 1])
+    assert look.point_spacing(parts) == float(np.median(d[:, 1]))
+    assert look.point_spacing(stacked) == float(np.median(d[:, 1]))
+    assert look.point_spacing([np.zeros((1, 3))]) == 0.0

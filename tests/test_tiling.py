@@ -391,3 +391,69 @@ def test_packed_covariances_of_a_scratch_map_equal_the_in_memory_ones_and_leave_
     assert np.array_equal(on_disk.stored(len(values))["covariance"], in_memory.stored(len(values))["covariance"])
     assert np.array_equal(on_disk.summary(len(values)), in_memory.summary(len(values)))
     assert _resident_kb("rows.bin") == 0
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="needs /proc/self/smaps (Linux)")
+def test_search_reach_of_covariances_on_disk_equals_in_memory_and_leaves_no_pages(tmp_path: Path) -> None:
+    """The correspondence search's reach per element (the tile halos' input, a pass over every covariance of the
+    epoch) is the same over rows kept in a scratch file, and leaves none of the file's pages resident: the whole
+    file stayed resident before (3.7 GB at 50 M points, between the region of view and the first tile)."""
+    from gdt_pipeline.types import arrays
+    from stages.correspondence.directed_search import _element_variances
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(arrays.PASS_PIECE + 5, 3, 3))
+    values = a @ np.swapaxes(a, 1, 2)
+    on_disk = GaussianUncertainty.trusted(_scratch_rows(tmp_path, values), None)
+    expected = np.einsum("nii->n", values)
+    assert np.array_equal(_element_variances(on_disk, len(values)), expected)
+    assert _resident_kb("rows.bin") == 0
+    shared = GaussianUncertainty(values[:1])
+    assert np.array_equal(_element_variances(shared, 4), np.full(4, expected[0]))
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="needs /proc/self/smaps (Linux)")
+def test_depth_image_votes_over_covariances_on_disk_equal_in_memory_and_leave_no_pages(tmp_path: Path) -> None:
+    """A station's votes read its points' covariances at random; over rows kept in a scratch file they are the same
+    votes, and the pages they touched are let go of after each chunk of samples."""
+    from gdt_pipeline.memory import track_scratch_map
+    from gdt_pipeline.region_of_view.depth import Station, build_image, window_votes
+
+    rng = np.random.default_rng(4)
+    n = 300_000
+    pts = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), np.full(n, 3.0) + rng.normal(0, 1e-3, n)])
+    values = np.broadcast_to(np.diag([1e-6, 1e-6, 1e-6]), (n, 3, 3)).copy()
+    rows = _scratch_rows(tmp_path, values)
+    track_scratch_map(rows._mmap)
+    station = Station(np.zeros(3), lambda q: np.ones(len(q), dtype=bool), (0,))
+    samples = np.column_stack([rng.uniform(-0.9, 0.9, (50_000, 2)), np.full(50_000, 3.0)])
+    sample_cov = np.broadcast_to(np.eye(3) * 1e-6, (len(samples), 3, 3))
+    in_memory = window_votes(build_image(station, pts, values, 1.0), samples, sample_cov, None, 3.0)
+    on_disk = window_votes(build_image(station, pts, rows, 1.0), samples, sample_cov, None, 3.0)
+    assert in_memory[0].sum() > len(samples)  # the samples lie on the measured plane: present votes
+    assert np.array_equal(on_disk, in_memory)
+    assert _resident_kb("rows.bin") == 0
+
+
+def test_tile_index_arrays_are_int32_and_hold_what_a_scan_of_every_position_finds() -> None:
+    """The tiles' members, the box index and the merge order are 4 B an element (int32 below 2³¹ rows), and still
+    name exactly the elements a brute-force scan of every position finds, a chunk of cells at a time included."""
+    from gdt_pipeline.tiling import grid as grid_module
+
+    rng = np.random.default_rng(6)
+    pos = rng.uniform(0, 1, (grid_module.CELL_CHUNK + 1_234, 3))
+    grid = grid_for([pos], 0.3)
+    cells = grid.cell(pos)
+    assert cells.dtype == np.int32
+    ijk = np.clip(np.floor((pos - grid.origin) / grid.size).astype(np.int64), 0, np.asarray(grid.shape) - 1)
+    assert np.array_equal(cells, ijk[:, 0] + grid.shape[0] * (ijk[:, 1] + grid.shape[1] * ijk[:, 2]))
+    members = tile_members(grid, [pos])
+    for tile, (ids,) in members.items():
+        assert ids.dtype == np.int32 and np.array_equal(ids, np.flatnonzero(cells == tile))
+    lo, hi = np.array([0.2, 0.1, 0.4]), np.array([0.7, 0.35, 0.9])
+    found = CellIndex(grid, pos).query(lo, hi)
+    assert found.dtype == np.int32
+    assert np.array_equal(found, np.flatnonzero(np.all((pos >= lo) & (pos <= hi), axis=1)))
+    order = ElementOrder.check("scan", [m[0] for m in members.values()], len(pos))
+    assert order.position.dtype == np.int32
+    assert np.array_equal(np.concatenate([m[0] for m in members.values()])[order.position], np.arange(len(pos)))

@@ -6,10 +6,10 @@ from ..types.triangles import triangle_areas, triangle_normals, triangle_points
 from .frames import beam_frames
 from .linalg import det3, inv3, quad_inv3, sym3
 from .normals import estimate_normals, knn_reach
-from .raycasting import distance_to, line_crossings, raycasting_scene
+from .raycasting import distance_to, line_crossings, list_intersections, raycasting_scene
 from .reference import NearestResult, ReferenceIndex
 from .sampling import sample_surface
 
 __all__ = ["NearestResult", "ReferenceIndex", "beam_frames", "det3", "distance_to", "estimate_normals", "inv3",
-           "knn_reach", "line_crossings", "quad_inv3", "raycasting_scene", "sample_surface", "sym3", "triangle_areas",
-           "triangle_normals", "triangle_points"]
+           "knn_reach", "line_crossings", "list_intersections", "quad_inv3", "raycasting_scene", "sample_surface",
+           "sym3", "triangle_areas", "triangle_normals", "triangle_points"]

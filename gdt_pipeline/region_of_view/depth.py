@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..memory import release_scratch_pages
 from .window_kernel import window_sides
 
 NONE, HIDDEN, THROUGH, PRESENT = 0, 1, 2, 3  # what the stations together say of a sample
@@ -139,6 +140,7 @@ def window_votes(img: DepthImage, pos: np.ndarray, cov: np.ndarray, tris: np.nda
         part = slice(s0, s0 + CHUNK)
         rows = part if owner is None else owner[part]
         out[:, part] = votes_chunk(img, pos[part], cov[rows], None if tris is None else tris[rows], k)
+        release_scratch_pages()  # the image's covariances, read at random, may be a scratch file's rows
     return out
 
 

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from ..geometry import raycasting_scene
+from ..geometry import list_intersections, raycasting_scene
 from ..types import Dataset
 from .params import SightParams
 
@@ -58,14 +58,12 @@ def occluded(origins: np.ndarray, targets: np.ndarray, scene, rule: str) -> np.n
 
 def segment_hits(scene, origins: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Every crossing of the scene strictly between each origin and its target: (segment index, triangle id)."""
-    import open3d as o3d
-
     rays = np.hstack([origins, targets - origins]).astype(np.float32)  # direction unnormalised: t in [0, 1] = segment
-    ans = scene.list_intersections(o3d.core.Tensor(rays))
-    t = ans["t_hit"].numpy()
-    ray = np.repeat(np.arange(len(origins)), np.diff(ans["ray_splits"].numpy()))
+    ans = list_intersections(scene, rays)
+    t = ans["t_hit"]
+    ray = np.repeat(np.arange(len(origins)), np.diff(ans["ray_splits"].astype(np.int64)))
     on_segment = (t > 0) & (t < 1)
-    return ray[on_segment], ans["primitive_ids"].numpy()[on_segment]
+    return ray[on_segment], ans["primitive_ids"][on_segment]
 
 
 def shadowed(origins: np.ndarray, targets: np.ndarray, tree: cKDTree, radius: float, chunk: int = 2_000_000

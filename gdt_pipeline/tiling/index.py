@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .grid import TileGrid
+from .grid import TileGrid, index_dtype
 
 
 class CellIndex:
@@ -15,7 +15,7 @@ class CellIndex:
         self.grid = grid
         self.positions = positions
         cells = grid.cell(positions)
-        self.order = np.argsort(cells, kind="stable")
+        self.order = np.argsort(cells, kind="stable").astype(index_dtype(len(positions)))
         self.sorted_cells = cells[self.order]
 
     def query(self, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -29,7 +29,7 @@ class CellIndex:
         starts = np.searchsorted(self.sorted_cells, cells, side="left")
         ends = np.searchsorted(self.sorted_cells, cells, side="right")
         if not np.any(ends > starts):
-            return np.zeros(0, dtype=np.int64)
+            return np.zeros(0, dtype=self.order.dtype)
         cand = np.concatenate([self.order[s:e] for s, e in zip(starts, ends, strict=True) if e > s])
         p = self.positions[cand]
         inside = np.all((p >= lower) & (p <= upper), axis=1)

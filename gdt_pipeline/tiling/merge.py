@@ -31,6 +31,7 @@ from ..types import (
     concat_uncertainty,
 )
 from .candidate_sink import candidate_places
+from .grid import index_dtype
 
 
 @dataclass(frozen=True)
@@ -48,8 +49,8 @@ class ElementOrder:
             lost, doubled = int(np.sum(counts[:n] == 0)), int(np.sum(counts[:n] > 1))
             raise GdtError(f"tiling of dataset {name!r}: {lost} elements in no tile's core and {doubled} in more than "
                            f"one (of {n}); the merged result would not be the epoch's")
-        position = np.empty(n, dtype=np.int64)
-        position[ids] = np.arange(n)
+        position = np.empty(n, dtype=index_dtype(n))
+        position[ids] = np.arange(n, dtype=position.dtype)
         return cls(position)
 
 

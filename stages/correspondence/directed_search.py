@@ -134,7 +134,7 @@ def _directed_survey(params: DirectedParams, slots: Mapping[str, Any]) -> dict[s
                               if ds.faces is not None and len(ds.faces)}}
 
 
-def _element_variances(u: Any, n: int) -> np.ndarray:
+def element_variances(u: Any, n: int) -> np.ndarray:
     """Per element a bound on its largest variance: its covariance's trace (cheap, and ≥ the top eigenvalue)."""
     if n == 0:
         return np.zeros(0)
@@ -145,7 +145,7 @@ def _element_variances(u: Any, n: int) -> np.ndarray:
 
 def _largest_variance(u: Any) -> float:
     """A bound on the largest variance of a model's rows: the largest trace."""
-    trace = _element_variances(u, u.rows)
+    trace = element_variances(u, u.rows)
     return float(trace.max()) if len(trace) else 0.0
 
 
@@ -171,7 +171,7 @@ def _directed_reach(params: DirectedParams, slots: Mapping[str, Any]) -> list[np
                if any(it.dataset.faces is None and it.visible.any() for it in reference.items) else None)
     out = []
     for ds in recent:
-        var_q = _element_variances(ds.uncertainty, ds.n_elements) * reach_factor(ds.uncertainty) ** 2
+        var_q = element_variances(ds.uncertainty, ds.n_elements) * reach_factor(ds.uncertainty) ** 2
         reach = params.search_sigmas * np.sqrt(var_q + var_mesh) if meshes else np.zeros(ds.n_elements)
         if var_pts is not None:
             reach = np.maximum(reach, np.sqrt(_chi2_3(params.probability) * (var_q + var_pts)))

@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..memory import release_scratch_pages
+from ..types.arrays import index_dtype
 from .window_kernel import window_sides
 
 NONE, HIDDEN, THROUGH, PRESENT = 0, 1, 2, 3  # what the stations together say of a sample
@@ -121,7 +122,7 @@ def build_image(station: Station, pts: np.ndarray, cov: np.ndarray, pixel_scale:
     order = np.argsort(key, kind="stable")
     key = key[order]
     first = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
-    index = np.int32 if len(pts) < np.iinfo(np.int32).max else np.int64
+    index = index_dtype(len(pts))
     return DepthImage(eye=station.eye, frame=frame, pixel=pixel, keys=key[first],
                       bounds=np.append(first, len(key)).astype(index), order=order.astype(index),
                       points=np.asarray(pts), cov=np.asarray(cov), free_range=station.free_range)

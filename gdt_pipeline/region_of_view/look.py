@@ -176,11 +176,12 @@ def look(ctx: StageContext, rov: RegionOfView, parts: list[str], stations: list[
     p = ctx.params
     recent: list[Dataset] = ctx["recent"]
     reference: Composite = ctx.get("reference") or Composite()
-    spacing = point_spacing([ds.element_positions() for ds in recent])
+    positions = [ds.element_positions() for ds in recent]
+    spacing = point_spacing(positions)
     if p.sight == "depth":
+        del positions  # a mesh's centroids are not held while the depth images are
         return look_depth(ctx, rov, parts, stations, spacing)
-    rpts = (recent[0].element_positions() if len(recent) == 1
-            else np.vstack([ds.element_positions() for ds in recent]) if recent else np.zeros((0, 3)))
+    rpts = positions[0] if len(positions) == 1 else np.vstack(positions) if positions else np.zeros((0, 3))
     offset = p.offset or 3 * spacing
     match = p.match_distance or 3 * spacing
     vps = _viewpoints(p, recent)

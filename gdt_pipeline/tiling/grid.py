@@ -8,16 +8,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..types.arrays import index_dtype
+
 # Tile sizes from a budget are halved from the whole extent until the fullest tile fits; below this many cells per
 # axis a finer grid is not tried (a tile that thin is all halo).
 MAX_SPLITS = 12
 CELL_CHUNK = 1 << 20  # positions whose cells are found at once
-
-
-def index_dtype(n: int) -> type[np.signedinteger]:
-    """The narrowest of int32 and int64 that indexes ``n`` rows: the tiles' index arrays are 4 B an element of the
-    epoch instead of 8 (half a gigabyte each at 10⁸ points)."""
-    return np.int32 if n < np.iinfo(np.int32).max else np.int64
 
 
 @dataclass(frozen=True)
@@ -89,10 +85,10 @@ def tile_members(grid: TileGrid, positions: Sequence[np.ndarray]) -> dict[int, l
     occupied = np.unique(np.concatenate(cells)) if cells else np.zeros(0, np.int64)
     out: dict[int, list[np.ndarray]] = {int(t): [] for t in occupied}
     for c in cells:
-        order = np.argsort(c, kind="stable")
-        starts = np.searchsorted(c[order], occupied, side="left")
-        ends = np.searchsorted(c[order], occupied, side="right")
-        narrow = index_dtype(len(c))
+        order = np.argsort(c, kind="stable").astype(index_dtype(len(c)))
+        sorted_cells = c[order]
+        starts = np.searchsorted(sorted_cells, occupied, side="left")
+        ends = np.searchsorted(sorted_cells, occupied, side="right")
         for t, s, e in zip(occupied, starts, ends, strict=True):
-            out[int(t)].append(np.sort(order[s:e]).astype(narrow))
+            out[int(t)].append(np.sort(order[s:e]))
     return out

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .grid import TileGrid, index_dtype
+from ..types.arrays import index_dtype
+from .grid import TileGrid
 
 
 class CellIndex:

@@ -30,8 +30,8 @@ from ..types import (
     Uncertainty,
     concat_uncertainty,
 )
+from ..types.arrays import index_dtype
 from .candidate_sink import candidate_places
-from .grid import index_dtype
 
 
 @dataclass(frozen=True)

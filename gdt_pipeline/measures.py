@@ -156,7 +156,7 @@ def lowest_per_element(elements: np.ndarray, cand_score: np.ndarray, n: int) -> 
     equal scores the first candidate wins."""
     score = np.full(n, np.nan)
     match = np.full(n, -1, dtype=np.int64)
-    _lowest(np.ascontiguousarray(elements, dtype=np.int64), np.ascontiguousarray(cand_score, dtype=np.float64),
+    _lowest(np.ascontiguousarray(elements), np.ascontiguousarray(cand_score, dtype=np.float64),
             score, match)
     return score, match
 

@@ -1,12 +1,12 @@
 """3-D tiles with halos: the grid, box queries, cutting an epoch's slots to a tile and merging tiles' core results
 (``docs/scale.md``). The runner (``runner.tiled``) drives them; executors (``gdt_executors`` plugins) run the tiles."""
 
-from .candidate_sink import CandidateSink
+from .candidate_sink import CandidateSink, candidate_places
 from .crop import crop_composite, crop_rov, in_box, lookup, take_candidates, take_dataset
 from .grid import TileGrid, grid_for, size_for_budget, tile_members
 from .index import CellIndex
 from .merge import ElementOrder, merge_change, merge_correspondences, merge_recent, merge_scores
 
-__all__ = ["CandidateSink", "CellIndex", "ElementOrder", "TileGrid", "crop_composite", "crop_rov", "grid_for",
-           "in_box", "lookup", "merge_change", "merge_correspondences", "merge_recent", "merge_scores",
+__all__ = ["CandidateSink", "CellIndex", "ElementOrder", "TileGrid", "candidate_places", "crop_composite", "crop_rov",
+           "grid_for", "in_box", "lookup", "merge_change", "merge_correspondences", "merge_recent", "merge_scores",
            "size_for_budget", "take_candidates", "take_dataset", "tile_members"]

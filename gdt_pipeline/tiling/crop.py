@@ -88,7 +88,7 @@ def take_candidates(corr: Correspondences, keep: np.ndarray, element_of: IndexMa
     the reference rows they use."""
     sub = corr.take(np.flatnonzero(keep))
     item = sub.ref_item
-    ref_element = sub.ref_element.copy()
+    ref_element = sub.ref_element.astype(np.int64)  # the epoch's numbers may not fit the tile's int32
     for i in np.unique(item[item >= 0]):
         at = item == i
         ref_element[at] = ref_element_of[i](ref_element[at])

@@ -50,6 +50,19 @@ def index_dtype(n: int) -> type[np.signedinteger[Any]]:
     return np.int32 if n < np.iinfo(np.int32).max else np.int64
 
 
+def index_column(values: Any) -> type[np.signedinteger[Any]]:
+    """The dtype a per-candidate index column is held in: int32 when its values fit (an int32 column stays one
+    without a pass over it), else int64. The narrow columns are what a run keeps of every candidate: 16 B a
+    candidate less at four columns, 1.4 GB at 50 M points."""
+    if isinstance(values, np.ndarray) and values.dtype == np.int32:
+        return np.int32
+    values = np.asarray(values)
+    if values.size == 0 or values.dtype.kind == "b":
+        return np.int32
+    limits = np.iinfo(np.int32)
+    return np.int32 if limits.min <= values.min() and values.max() <= limits.max else np.int64
+
+
 def by_pieces(rows: np.ndarray, per_rows: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
     """``per_rows`` of every row, row for row; over a ``MappedRows``, ``PASS_PIECE`` rows at a time, letting go of the
     pages each piece read, so that a pass over a scratch file leaves the process holding the result, not the file."""

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import GdtError
 from ..memory import return_freed_memory
-from .arrays import frozen_array
+from .arrays import frozen_array, index_column, index_dtype
 from .uncertainty import GaussianUncertainty, Uncertainty, concat_uncertainty
 
 # a field with one row per candidate; ``rows_of`` names the field whose rows its values index (−1: none)
@@ -59,19 +59,23 @@ class Correspondences:
     query_uncertainty: Uncertainty | None = field(default=None, metadata=PER_CANDIDATE)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "ref_item", frozen_array(self.ref_item, np.int64, (None,), "ref_item"))
+        object.__setattr__(self, "ref_item", frozen_array(self.ref_item, index_column(self.ref_item), (None,),
+                                                          "ref_item"))
         m = len(self.ref_item)
         if self.ref_uncertainty is not None:
             rows = np.arange(m) if self.ref_row is None else self.ref_row
-            object.__setattr__(self, "ref_row", frozen_array(rows, np.int64, (m,), "ref_row"))
-        object.__setattr__(self, "ref_element", frozen_array(self.ref_element, np.int64, (m,), "ref_element"))
+            object.__setattr__(self, "ref_row", frozen_array(rows, index_column(rows), (m,), "ref_row"))
+        object.__setattr__(self, "ref_element", frozen_array(self.ref_element, index_column(self.ref_element), (m,),
+                                                             "ref_element"))
         object.__setattr__(self, "position", frozen_array(self.position, np.float64, (m, 3), "matched position"))
         object.__setattr__(self, "distance", frozen_array(self.distance, np.float64, (m,), "distance"))
         if self.element is _EACH_ITS_OWN:
-            object.__setattr__(self, "element", np.arange(m, dtype=np.int64))
+            object.__setattr__(self, "element", frozen_array(np.arange(m, dtype=index_dtype(m)), index_dtype(m), (m,),
+                                                             "candidate element"))
             object.__setattr__(self, "n_elements", m if self.n_elements is None else self.n_elements)
         else:
-            object.__setattr__(self, "element", frozen_array(self.element, np.int64, (m,), "candidate element"))
+            object.__setattr__(self, "element", frozen_array(self.element, index_column(self.element), (m,),
+                                                             "candidate element"))
             if self.n_elements is None:
                 raise ValueError("correspondences with an element map need n_elements")
         if self.query_position is not None:
@@ -175,7 +179,7 @@ def _joined_rows(pieces: Sequence[Correspondences], rows_of: str, name: str) -> 
             rows.append(np.full(len(p.ref_item), -1, dtype=np.int64))
             continue
         index = getattr(p, name)
-        rows.append(np.where(index >= 0, index + offset, -1))
+        rows.append(np.where(index >= 0, index + np.int64(offset), -1))  # an int32 index plus an offset could wrap
         offset += model.rows
     return concat_uncertainty(models, [m.rows for m in models]), np.concatenate(rows)
 
@@ -189,6 +193,7 @@ def scatter_rows(parts: list[Any], where: Sequence[np.ndarray], total: int) -> A
         for i, rows in enumerate(where):
             out[rows] = parts[i]
             parts[i] = None
+        out.setflags(write=False)  # frozen as it is, the merged candidates take it without a copy (8 B a candidate)
         return out
     if isinstance(first, GaussianUncertainty) and all(
             isinstance(u, GaussianUncertainty) and u.rows == len(rows) and u.dof == first.dof

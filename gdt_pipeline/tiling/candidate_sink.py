@@ -100,6 +100,7 @@ class CandidateSink:
         kind = held[0].kind if held else Correspondences
         values: dict[str, Any] = {"query": d, "n_elements": n_elements,
                                   "method": held[0].narrow.method if held else ""}
+        self._spill_small_models(held)
         if not _one_gaussian(held):
             self._query_models_back(held)
         columns = field_parts([h.narrow for h in held], kind, values)
@@ -185,6 +186,27 @@ class CandidateSink:
                 if hi > lo:
                     piece[places[lo:hi] - start] = self._read(column, int(lo), int(hi))
             self._put(into, piece, offset + first.row_bytes * start)
+
+    def _spill_small_models(self, held: list[_Held]) -> None:
+        """The query models of tiles with at most one candidate (``_hold`` spills per-candidate rows only) written to
+        disk too, where they are Gaussians of the spilled tiles' dof: else one such tile reads every tile's
+        covariances back into memory (72 B a candidate, 6.3 GB at 50 M points)."""
+        dofs = {h.query_dof for h in held if QUERY_COV in h.columns}
+        if len(dofs) != 1:
+            return
+        dof = dofs.pop()
+        for h in held:
+            u = h.narrow.query_uncertainty
+            if QUERY_COV in h.columns:
+                continue
+            if h.size == 0:  # no candidates: nothing of its model is merged, whatever it is
+                cov = np.zeros((0, 3, 3))
+            elif isinstance(u, GaussianUncertainty) and u.dof == dof and len(u.cov) in (1, h.size):
+                cov = np.broadcast_to(u.cov, (h.size, 3, 3))
+            else:
+                continue
+            h.columns[QUERY_COV], h.query_dof = self._write(np.ascontiguousarray(cov)), dof
+            h.narrow.query_uncertainty = None
 
     def _query_models_back(self, held: list[_Held]) -> None:
         """The query's spilled covariances read back into memory, where tiles' models differ (some not Gaussian

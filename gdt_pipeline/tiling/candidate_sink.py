@@ -196,9 +196,9 @@ class CandidateSink:
             return
         dof = dofs.pop()
         for h in held:
-            u = h.narrow.query_uncertainty
             if QUERY_COV in h.columns:
                 continue
+            u = h.narrow.query_uncertainty
             if h.size == 0:  # no candidates: nothing of its model is merged, whatever it is
                 cov = np.zeros((0, 3, 3))
             elif isinstance(u, GaussianUncertainty) and u.dof == dof and len(u.cov) in (1, h.size):

@@ -37,6 +37,7 @@ from .coverage import ReferenceCoverage
 from .geometry import sample_surface
 from .plugins import FAMILY_SLOTS, StageContext, StageSpec, family_stage
 from .types import Composite, Correspondences, Dataset, Scores, Uncertainty
+from .types.arrays import index_dtype
 from .types.uncertainty import describe_model
 
 Counts = dict[str, dict[str, int]]
@@ -123,7 +124,8 @@ def pair_sources(ds: Dataset, corr: Correspondences, reference: Composite) -> li
     """The candidate pairs of one recent dataset as ``PairSource``s, one per reference uncertainty model."""
     if ds.uncertainty is None:
         raise ValueError(f"recent dataset {ds.name!r} has no uncertainty: add an uncertainty stage before this one")
-    found = np.flatnonzero(corr.found)
+    # the null simulator keeps these indices for the threshold: int32 where they fit (4 B a candidate less)
+    found = np.flatnonzero(corr.found).astype(index_dtype(len(corr.found)), copy=False)
     # per candidate when the correspondences carry query positions, else per element
     per_candidate = corr.query_position is not None
     qpos = corr.query_position if corr.query_position is not None else ds.element_positions()
@@ -155,7 +157,7 @@ def lowest_per_element(elements: np.ndarray, cand_score: np.ndarray, n: int) -> 
     """Per element, the lowest candidate score (NaN when it has none) and the index of that candidate (−1); among
     equal scores the first candidate wins."""
     score = np.full(n, np.nan)
-    match = np.full(n, -1, dtype=np.int64)
+    match = np.full(n, -1, dtype=index_dtype(len(elements)))  # held to the fusion: int32 where it fits
     _lowest(np.ascontiguousarray(elements), np.ascontiguousarray(cand_score, dtype=np.float64),
             score, match)
     return score, match

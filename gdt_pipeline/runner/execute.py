@@ -290,8 +290,11 @@ def _drop_unread(slots: dict[str, Any], later: list[list[StagePlan]]) -> None:
     """Let go of the slots no later stage reads and the epoch's writer does not need (correspondences and scores
     after the threshold: a tenth of a kilobyte a point)."""
     wanted = KEPT_SLOTS | {s for run in later for st in run for s in (*st.spec.requires, *st.spec.optional)}
-    for name in [n for n in slots if n not in wanted]:
+    unread = [n for n in slots if n not in wanted]
+    for name in unread:
         del slots[name]
+    if unread:  # else their pages stay in glibc's heap under the next stage's peak (memory.py)
+        return_freed_memory()
 
 
 def _run_chain_stage(run: _RunContext, epoch: EpochPlan, stage: StagePlan, info: EpochInfo, slots: dict[str, Any],

@@ -189,7 +189,7 @@ def merge_scores(pieces: Sequence[Scores], order: ElementOrder, candidate_maps: 
             m = p.match
             if candidate_maps is not None:
                 won = m >= 0
-                m = np.full(len(m), -1, dtype=np.int64)
+                m = np.full(len(m), -1, dtype=candidate_maps[i].dtype)
                 m[won] = candidate_maps[i][p.match[won]]
             parts.append(m)
         match = np.concatenate(parts)[order.position]

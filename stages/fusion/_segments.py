@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
 from gdt_pipeline import CompositeItem, Dataset, Segment
+from gdt_pipeline.geometry.components import radius_components
 from gdt_pipeline.geometry.extent import check_radius, radius_within_pairs
 
 
@@ -86,9 +87,6 @@ def _masked_elements(items: list[CompositeItem], masks: dict[int, np.ndarray]
 
 def segment_labels(pos_a: np.ndarray, sig_a: np.ndarray, params: SegmentParams) -> np.ndarray:
     """Connected-component label of each element in the graph of elements closer than the segment radius."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     tree = cKDTree(pos_a)
     radius = params.segment_radius
     if radius is None:
@@ -103,12 +101,7 @@ def segment_labels(pos_a: np.ndarray, sig_a: np.ndarray, params: SegmentParams) 
         radius = radius_within_pairs(tree, radius, floor)
     # a units mistake makes the radius span the whole data: refuse before the pair list takes all memory
     check_radius(tree, radius, "fusion", "grouping changed elements into segments (`segment_radius`)")
-    pairs = tree.query_pairs(radius, output_type="ndarray")
-    n = len(pos_a)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
-        coo_matrix((n, n))
-    _, label = connected_components(graph, directed=False)
-    return label
+    return radius_components(tree, radius)
 
 
 def segments(items: list[CompositeItem], masks: dict[int, np.ndarray], kind: str, params: SegmentParams,

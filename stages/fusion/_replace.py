@@ -92,21 +92,19 @@ def _choose(qi: int, ds: Dataset, ch: Change, known: KnownInView, policy: str, r
     reason = np.full(ds.n_elements, FusionReason.KNOWN_STAYS, np.uint8)
     ratio = np.full(ds.n_elements, np.nan)
     out.reason[qi], out.ratio[qi] = reason, ratio
-    mask = np.zeros(ds.n_elements, bool) if known.tree is not None else None
-    # in pieces of the elements: positions, spreads and nearest neighbours of every unchanged point were 64 B a
-    # point at once, and the unchanged ones' indices 8 B
-    judged = 0
-    for start in range(0, ds.n_elements, CHOOSE_PIECE):
-        cand = start + np.flatnonzero(ch.state[start:start + CHOOSE_PIECE] == ChangeState.UNCHANGED)
-        if cand.size:
-            _choose_piece(cand, ds, known, policy, ratio_limit, reason, ratio, mask, taking)
-        judged += cand.size
-    if mask is not None and judged:  # the report lists every dataset with unchanged elements, taking none or some
+    cand = np.flatnonzero(ch.state == ChangeState.UNCHANGED)
+    if not cand.size:
+        return
+    mask = np.zeros(ds.n_elements, bool)
+    # in pieces: positions, spreads and nearest neighbours of every unchanged point were 64 B a point at once
+    for start in range(0, len(cand), CHOOSE_PIECE):
+        _choose_piece(cand[start:start + CHOOSE_PIECE], ds, known, policy, ratio_limit, reason, ratio, mask, taking)
+    if known.tree is not None:
         out.taking[qi] = mask
 
 
 def _choose_piece(cand: np.ndarray, ds: Dataset, known: KnownInView, policy: str, ratio_limit: float | None,
-                  reason: np.ndarray, ratio: np.ndarray, mask: np.ndarray | None, taking: Taking) -> None:
+                  reason: np.ndarray, ratio: np.ndarray, mask: np.ndarray, taking: Taking) -> None:
     """``_choose`` for the unchanged elements ``cand`` of the dataset."""
     rpos = ds.element_positions()[cand]
     v_new, sigma = spread(ds, cand)
@@ -114,7 +112,7 @@ def _choose_piece(cand: np.ndarray, ds: Dataset, known: KnownInView, policy: str
     if known.design_tree is not None:
         d_design, _ = known.design_tree.query(rpos, workers=-1)
         reason[cand[d_design <= np.maximum(spacing, 2.0 * known.design_gap)]] = FusionReason.DESIGN_STAYS
-    if known.tree is None or mask is None:
+    if known.tree is None:
         return
     d, j = known.tree.query(rpos, workers=-1)
     # an unchanged recent element images its nearest in-view known element when it lies within 3σ of either's

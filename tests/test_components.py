@@ -26,10 +26,13 @@ def _scipy_labels(points: np.ndarray, radius: float) -> tuple[np.ndarray, int]:
 def test_labels_are_scipys_whatever_the_pieces(n: int, radius: float, per_piece: int) -> None:
     rng = np.random.default_rng(n)
     points = rng.random((n, 3))
-    points[: n // 10] = np.round(points[: n // 10] * 50) / 50  # on a grid of spacing 0.02: pairs exactly r apart
+    points[: n // 10] = np.round(points[: n // 10] * 50) / 50  # a 0.02 grid: pairs exactly r apart at r = 0.02
     want, pairs = _scipy_labels(points, radius)
-    got = radius_components(cKDTree(points), radius, per_piece)
+    tree = cKDTree(points)
+    got = radius_components(tree, radius, per_piece)
     assert np.array_equal(got, want)
+    counted = radius_components(tree, radius, per_piece, listed=int(tree.count_neighbors(tree, radius)))
+    assert np.array_equal(counted, want)  # with the caller's count, as the fusion passes check_radius's
     assert pairs > 0 or n == 1
 
 

@@ -55,20 +55,22 @@ def check_scales(recent: Sequence[Dataset], reference: Composite | None, stage: 
                      f"`units` of the inputs and of the workflow (a file in mm read as m is 1000× too large)")
 
 
-def check_radius(tree: cKDTree, radius: float, stage: str, what: str) -> None:
+def check_radius(tree: cKDTree, radius: float, stage: str, what: str) -> int | None:
     """Refuse a radius search at the wrong scale (over ``MAX_MEAN_NEIGHBOURS`` per element on average with a radius
     over ``MAX_RADIUS_SHARE`` of the data's extent) or too large for memory (over ``MAX_PAIRS`` pairs), before any
-    pair list is built. Dense data with many neighbours at a radius that suits it passes (noisy scans do)."""
+    pair list is built. Dense data with many neighbours at a radius that suits it passes (noisy scans do). Returns
+    the ordered pairs it counted (each element with itself included), None when too few elements to count."""
     n = int(tree.n)
     if n < 2 or n * (n - 1) / 2 <= MIN_PAIRS_CHECKED:
-        return
-    # ordered pairs within the radius, each element with itself included; a dual-tree count builds no list
-    pairs = (int(tree.count_neighbors(tree, radius)) - n) / 2
+        return None
+    # a dual-tree count builds no list
+    listed = int(tree.count_neighbors(tree, radius))
+    pairs = (listed - n) / 2
     mean = 2.0 * pairs / n
     extent = diagonal(tree.data)
     wrong_scale = mean > MAX_MEAN_NEIGHBOURS and radius > MAX_RADIUS_SHARE * extent
     if pairs <= MIN_PAIRS_CHECKED or not (wrong_scale or pairs > MAX_PAIRS):
-        return
+        return listed
     raise StageError(f"{stage}: {what} of radius {radius:.4g} would join {mean:.0f} of the {n} elements to each on "
                      f"average ({pairs:.3g} pairs; limits: {MAX_MEAN_NEIGHBOURS} on average with a radius over "
                      f"{MAX_RADIUS_SHARE:g} of the extent, {MAX_PAIRS:.0e} pairs in all); the data's extent "

@@ -36,7 +36,7 @@ def fusion_stage(name: str, params: type[SegmentParams], run: Callable[[StageCon
     view; its catalogue parts are checked before a run, and ``needs_rov`` says whether its rule replaces elements
     in view (then a region of view must come first)."""
     # only a fusion without a region of view reads the matches (``confirmed``); one that needs it does not ask
-    # for them, so the runner lets the correspondences and scores go before it (33 B a point, 1.6 GB at 50 M)
+    # for them, so the runner lets the correspondences and scores go before it (38 B a point in memory at 2 M)
     matches = () if needs_rov else ("correspondences", "scores")
     return family_stage("fusion", name=name, version="1.3.0", params=params, run=run, description=description,
                         optional=("reference", "change", "rov", *matches), validate=part_problems,

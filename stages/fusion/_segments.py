@@ -100,8 +100,8 @@ def segment_labels(pos_a: np.ndarray, sig_a: np.ndarray, params: SegmentParams) 
         # below would refuse is narrowed to what it accepts (a radius the workflow sets is kept, and checked)
         radius = radius_within_pairs(tree, radius, floor)
     # a units mistake makes the radius span the whole data: refuse before the pair list takes all memory
-    check_radius(tree, radius, "fusion", "grouping changed elements into segments (`segment_radius`)")
-    return radius_components(tree, radius)
+    listed = check_radius(tree, radius, "fusion", "grouping changed elements into segments (`segment_radius`)")
+    return radius_components(tree, radius, listed=listed)
 
 
 def segments(items: list[CompositeItem], masks: dict[int, np.ndarray], kind: str, params: SegmentParams,

@@ -143,8 +143,11 @@ def pair_sources(ds: Dataset, corr: Correspondences, reference: Composite) -> li
         ref = reference.items[item].dataset
         if ref.uncertainty is None:
             raise ValueError(f"reference dataset {ref.name!r} has no uncertainty")
+        # every pair of this source names this item: a stride-0 column rather than the correspondences' (the
+        # simulator holds its columns from the distance stage to the threshold: 4 B a candidate, 0.2 GB at 50 M)
+        item_column = np.broadcast_to(corr.ref_item.dtype.type(item), corr.ref_item.shape)
         sources.append(PairSource(sel, corr.element, qpos, u_q, corr.position, ref.uncertainty,
-                                  corr.ref_element, corr.ref_item, corr.ref_element, per_candidate, u_q_rows))
+                                  corr.ref_element, item_column, corr.ref_element, per_candidate, u_q_rows))
     return sources
 
 

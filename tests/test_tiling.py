@@ -25,6 +25,7 @@ from gdt_pipeline.tiling import (
     CellIndex,
     ElementOrder,
     grid_for,
+    members_of,
     merge_correspondences,
     size_for_budget,
     take_candidates,
@@ -64,6 +65,28 @@ def test_cell_index_finds_what_a_scan_finds() -> None:
         hi = lo + rng.uniform(0.0, 1.5, 3)
         brute = np.flatnonzero(np.all((cloud >= lo) & (cloud <= hi), axis=1))
         assert np.array_equal(index.query(lo, hi), brute)
+
+
+def test_core_members_are_views_of_the_cell_index() -> None:
+    rng = np.random.default_rng(5)
+    clouds = [_cloud(rng, 3000), rng.uniform(1.6, 2.0, (40, 3)), np.zeros((0, 3))]
+    grid = grid_for(clouds, 0.5)
+    indexes = [CellIndex(grid, c) for c in clouds]
+    members = members_of(indexes)
+    cells = [grid.cell(c) for c in clouds]
+    occupied = np.unique(np.concatenate(cells))
+    assert list(members) == occupied.tolist()
+    for tile, per in members.items():
+        for d, ids in enumerate(per):
+            # what an argsort and a sort of each core gave before: the ascending indices of the tile's elements
+            assert np.array_equal(ids, np.flatnonzero(cells[d] == tile))
+            assert ids.base is indexes[d].order or (len(ids) == 0 and ids.base is not None)
+            assert not ids.flags.writeable
+    assert all(len(per[2]) == 0 for per in members.values())  # a dataset with no points is empty in every tile
+    assert sum(len(per[1]) for per in members.values()) == 40
+    assert not hasattr(indexes[0], "sorted_cells")  # 4 B a position that the table of occupied cells replaces
+    assert len(indexes[0].occupied) == len(np.unique(cells[0])) < len(clouds[0])
+    assert len(indexes[2].query(np.full(3, -9.0), np.full(3, 9.0))) == 0
 
 
 def test_budget_size_holds_the_budget() -> None:

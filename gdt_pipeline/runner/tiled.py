@@ -34,13 +34,13 @@ from ..tiling import (
     crop_rov,
     grid_for,
     lookup,
+    members_of,
     merge_change,
     merge_correspondences,
     merge_scores,
     size_for_budget,
     take_candidates,
     take_dataset,
-    tile_members,
 )
 from ..tiling.crop import take_change, take_scores
 from ..tiling.merge import RecentSink
@@ -141,8 +141,8 @@ class _Cutter:
         recent: list[Dataset] = self.slots["recent"]
         positions = [ds.element_positions() for ds in recent]
         self.grid = grid_for(positions, self.size)
-        self.members = tile_members(self.grid, positions)
         self.recent_index = [CellIndex(self.grid, p) for p in positions]
+        self.members = members_of(self.recent_index)
         self.stage_reach = {t: tile_reaches(self.reaches, *self.grid.bounds(t), self.recent_index)
                             for t in self.members}
         ref: Composite | None = self.slots.get("reference")

@@ -77,18 +77,3 @@ def size_for_budget(positions: Sequence[np.ndarray], max_elements: int) -> float
             return size
         size /= 2
     return size
-
-
-def tile_members(grid: TileGrid, positions: Sequence[np.ndarray]) -> dict[int, list[np.ndarray]]:
-    """Per non-empty tile (in tile order), per dataset, the indices of the elements in its core."""
-    cells = [grid.cell(p) for p in positions]
-    occupied = np.unique(np.concatenate(cells)) if cells else np.zeros(0, np.int64)
-    out: dict[int, list[np.ndarray]] = {int(t): [] for t in occupied}
-    for c in cells:
-        order = np.argsort(c, kind="stable").astype(index_dtype(len(c)))
-        sorted_cells = c[order]
-        starts = np.searchsorted(sorted_cells, occupied, side="left")
-        ends = np.searchsorted(sorted_cells, occupied, side="right")
-        for t, s, e in zip(occupied, starts, ends, strict=True):
-            out[int(t)].append(np.sort(order[s:e]))
-    return out

@@ -34,10 +34,15 @@ class CellIndex:
 
     def in_cell(self, cell: int) -> np.ndarray:
         """The ascending indices of the positions in ``cell`` (a read-only view of the order; empty if none)."""
-        k = int(np.searchsorted(self.occupied, cell))
-        if k == len(self.occupied) or self.occupied[k] != cell:
-            return self.order[:0]
-        return self.order[self.starts[k]:self.starts[k + 1]]
+        k = self._rows(np.array([cell]))
+        return self.order[self.starts[k[0]]:self.starts[k[0] + 1]] if len(k) else self.order[:0]
+
+    def _rows(self, cells: np.ndarray) -> np.ndarray:
+        """The rows of the occupied-cell table that ``cells`` hold (cells without a position left out)."""
+        k = np.searchsorted(self.occupied, cells)
+        hit = k < len(self.occupied)
+        hit[hit] = self.occupied[k[hit]] == cells[hit]
+        return k[hit]
 
     def query(self, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
         """Sorted indices of the positions inside the closed box [lower, upper]."""
@@ -47,9 +52,7 @@ class CellIndex:
         hi = np.clip(np.floor((upper - g.origin) / g.size).astype(np.int64), 0, top)
         ii, jj, kk = np.meshgrid(*(np.arange(a, b + 1) for a, b in zip(lo, hi, strict=True)), indexing="ij")
         cells = (ii + g.shape[0] * (jj + g.shape[1] * kk)).ravel()
-        k = np.searchsorted(self.occupied, cells)
-        k = k[(k < len(self.occupied)) & (self.occupied[np.minimum(k, len(self.occupied) - 1)] == cells)] \
-            if len(self.occupied) else k[:0]
+        k = self._rows(cells)
         if not len(k):
             return np.zeros(0, dtype=self.order.dtype)
         cand = np.concatenate([self.order[self.starts[i]:self.starts[i + 1]] for i in k])

@@ -34,6 +34,7 @@ bench: setup
 	$(BIN)/python bench/append.py
 	$(BIN)/python bench/tile_halos.py
 	$(BIN)/python bench/tile_reads.py
+	$(BIN)/python bench/twin_write.py
 	$(BIN)/gdt eval workflows/test_scene.yaml --json out/eval/test_scene/result.json
 	$(BIN)/gdt eval workflows/fuselage.yaml --json out/eval/fuselage/result.json
 

@@ -21,6 +21,12 @@ DOC_DOF = ("Student t degrees of freedom per element of a heavy-tailed gaussian 
            "mixture); gdt:covariance then holds the t's scale matrix, not its covariance.")
 # name -> (value type, interpolation, array, element size, documentation)
 Primvars = dict[str, tuple[Any, Any, np.ndarray, int, str | None]]
+# where a part of a larger set stands: the set's origin (its points are relative to it) and its diagonal (widths)
+Frame = tuple[np.ndarray, float]
+# the fields holding one value (or row) per element
+PER_ELEMENT = ("points", "covariance", "half_widths", "rotation", "uncertainty_summary", "state", "score",
+               "source_epoch", "visible", "ids", "display_color", "p_value", "reason", "reason_ratio", "area_seen",
+               "area_removed", "intensity", "scan_color", "dof", "classification")
 
 
 @dataclass(frozen=True)
@@ -159,9 +165,15 @@ def primvar_values(es: ElementSet) -> Primvars:
     return out
 
 
-def point_widths(points: np.ndarray, visible: np.ndarray) -> np.ndarray:
-    """Per-point widths: 1/500 of the set's diagonal, and 0 for hidden points, so that plain viewers hide them."""
-    diag = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
+def diagonal(points: np.ndarray) -> float:
+    """The length of a point set's bounding-box diagonal (0 for no points)."""
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
+
+
+def point_widths(points: np.ndarray, visible: np.ndarray, diag: float | None = None) -> np.ndarray:
+    """Per-point widths: 1/500 of the set's diagonal (``diag``, else that of ``points``), and 0 for hidden points,
+    so that plain viewers hide them."""
+    diag = diagonal(points) if diag is None else diag
     return np.where(np.asarray(visible, dtype=bool), diag / 500.0 if diag > 0 else 0.002, 0.0).astype(np.float32)
 
 
@@ -182,11 +194,22 @@ def same_values(old: Any, new: np.ndarray) -> bool:
     return a.shape == new.shape and bool(np.array_equal(a, new, equal_nan=a.dtype.kind == "f"))
 
 
-def define_element_set(stage: Usd.Stage, es: ElementSet) -> None:
-    """Author a new set as ``/Twin/<key>`` on the stage's edit target: geometry, translate, primvars."""
-    path = f"{TWIN_PRIM}/{es.key}"
-    pts = np.asarray(es.points, dtype=np.float64)
+def set_frame(points: np.ndarray) -> Frame:
+    """A set's origin (the centre of its bounding box, where its float32 points are relative to) and diagonal."""
+    pts = np.asarray(points, dtype=np.float64)
     origin = (pts.min(axis=0) + pts.max(axis=0)) / 2 if len(pts) else np.zeros(3)
+    return origin, diagonal(pts)
+
+
+def define_element_set(stage: Usd.Stage, es: ElementSet, path: str | None = None, frame: Frame | None = None
+                       ) -> None:
+    """Author a new set as ``/Twin/<key>`` (or ``path``) on the stage's edit target: geometry, translate, primvars.
+
+    With a ``frame`` the set is a part of a larger one (``parts``): its points are relative to the larger set's
+    origin, it has no translate of its own (its parent has), and its widths follow the larger set's diagonal."""
+    path = f"{TWIN_PRIM}/{es.key}" if path is None else path
+    pts = np.asarray(es.points, dtype=np.float64)
+    origin, diag = set_frame(pts) if frame is None else frame
     local = (pts - origin).astype(np.float32)
     if es.kind == "mesh":
         geom = UsdGeom.Mesh.Define(stage, path)
@@ -201,12 +224,13 @@ def define_element_set(stage: Usd.Stage, es: ElementSet) -> None:
         geom = UsdGeom.Points.Define(stage, path)
         ids = np.arange(len(pts), dtype=np.int64) if es.ids is None else np.asarray(es.ids, dtype=np.int64)
         geom.CreateIdsAttr(Vt.Int64Array.FromNumpy(ids))
-        geom.CreateWidthsAttr(Vt.FloatArray.FromNumpy(point_widths(pts, es.visible)))
+        geom.CreateWidthsAttr(Vt.FloatArray.FromNumpy(point_widths(pts, es.visible, diag)))
         geom.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
     geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(local))
     geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, local.min(axis=0))),
                                          Gf.Vec3f(*map(float, local.max(axis=0)))]))
-    geom.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*map(float, origin)))
+    if frame is None:
+        geom.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*map(float, origin)))
     if not np.any(es.visible):
         geom.MakeInvisible()
     if es.identity:
@@ -223,21 +247,22 @@ def define_element_set(stage: Usd.Stage, es: ElementSet) -> None:
             pv.GetAttr().SetDocumentation(doc)
 
 
-def override_element_set(prim: Usd.Prim, es: ElementSet, epoch_id: str) -> None:
-    """Author, on the stage's edit target, the per-element values of a known set that differ from what is stored.
+def override_element_set(prim: Usd.Prim, es: ElementSet, epoch_id: str, frame: Frame | None = None) -> None:
+    """Author, on the stage's edit target, the per-element values of a known set that differ from what is stored
+    (a part of a larger set with its ``frame``, as in ``define_element_set``).
 
     The geometry of a known set never changes (changed geometry comes in as a new set)."""
-    kind = _check_same_geometry(prim, es, epoch_id)
+    origin = set_origin(prim) if frame is None else frame[0]
+    kind = _check_same_geometry(prim, es, epoch_id, origin)
     _restate_primvars(UsdGeom.PrimvarsAPI(prim), es)
-    _restate_visibility(prim, kind, es)
+    _restate_visibility(prim, kind, es, None if frame is None else frame[1])
 
 
-def _check_same_geometry(prim: Usd.Prim, es: ElementSet, epoch_id: str) -> str:
+def _check_same_geometry(prim: Usd.Prim, es: ElementSet, epoch_id: str, origin: np.ndarray) -> str:
     """The stored set's kind, after checking its points (and faces) are those of ``es``."""
     geom = UsdGeom.PointBased(prim)
     kind = "mesh" if prim.IsA(UsdGeom.Mesh) else "points"
     old_local = np.asarray(geom.GetPointsAttr().Get(), dtype=np.float32)
-    origin = set_origin(prim)
     new_local = (np.asarray(es.points, dtype=np.float64) - origin).astype(np.float32)
     same = kind == es.kind and old_local.shape == new_local.shape and np.array_equal(old_local, new_local)
     if same and kind == "mesh":
@@ -268,7 +293,7 @@ def _restate_primvars(api: UsdGeom.PrimvarsAPI, es: ElementSet) -> None:
             pv.GetAttr().SetDocumentation(doc)
 
 
-def _restate_visibility(prim: Usd.Prim, kind: str, es: ElementSet) -> None:
+def _restate_visibility(prim: Usd.Prim, kind: str, es: ElementSet, diag: float | None) -> None:
     """Author what plain viewers use to hide elements (mesh holes, zero point widths) and the set's visibility."""
     if kind == "mesh":
         holes = np.flatnonzero(~np.asarray(es.visible)).astype(np.int32)
@@ -277,15 +302,20 @@ def _restate_visibility(prim: Usd.Prim, kind: str, es: ElementSet) -> None:
             mesh.CreateHoleIndicesAttr().Set(Vt.IntArray.FromNumpy(holes))
     else:
         points = UsdGeom.Points(prim)
-        widths = point_widths(np.asarray(es.points, dtype=np.float64), es.visible)
+        widths = point_widths(np.asarray(es.points, dtype=np.float64), es.visible, diag)
         if not same_values(points.GetWidthsAttr().Get(), widths):
             points.CreateWidthsAttr().Set(Vt.FloatArray.FromNumpy(widths))
             points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+    restate_prim_visibility(prim, bool(np.any(es.visible)))
+
+
+def restate_prim_visibility(prim: Usd.Prim, any_visible: bool) -> None:
+    """Hide a prim whose elements are all hidden (and show it again if one is visible), where that changed."""
     imageable = UsdGeom.Imageable(prim)
     hidden_now = imageable.GetVisibilityAttr().Get() == UsdGeom.Tokens.invisible
-    if hidden_now and np.any(es.visible):
+    if hidden_now and any_visible:
         imageable.MakeVisible()
-    elif not hidden_now and not np.any(es.visible):
+    elif not hidden_now and not any_visible:
         imageable.MakeInvisible()
 
 
@@ -295,20 +325,34 @@ def set_origin(prim: Usd.Prim) -> np.ndarray:
     return np.asarray(ops[0].Get(), dtype=np.float64) if ops else np.zeros(3)
 
 
-def read_element_set(prim: Usd.Prim) -> ElementSet:
-    """The element set a composed ``/Twin/<key>`` prim holds, in world coordinates."""
+# field -> (primvar, dtype, shape of one element's value) of the per-element values a set is read back with
+READ_PRIMVARS: dict[str, tuple[str, Any, tuple[int, ...]]] = {
+    "covariance": ("gdt:covariance", np.float32, (6,)), "half_widths": ("gdt:halfWidths", np.float32, (3,)),
+    "rotation": ("gdt:rotation", np.float32, (3, 3)), "uncertainty_summary": ("gdt:uncertainty", np.float32, ()),
+    "state": ("gdt:changeState", np.uint8, ()), "score": ("gdt:changeScore", np.float32, ()),
+    "source_epoch": ("gdt:sourceEpoch", np.int32, ()), "visible": ("gdt:visible", np.bool_, ()),
+    "p_value": ("gdt:pValue", np.float32, ()), "reason": ("gdt:fusionReason", np.uint8, ()),
+    "reason_ratio": ("gdt:fusionRatio", np.float32, ()), "area_seen": ("gdt:areaSeen", np.float32, ()),
+    "area_removed": ("gdt:areaRemoved", np.float32, ()), "intensity": ("gdt:intensity", np.float32, ()),
+    "scan_color": ("gdt:scanColor", np.float32, (3,)), "dof": ("gdt:studentDof", np.float32, ()),
+    "classification": ("gdt:classification", np.uint8, ()),
+}
+
+
+def primvar_array(prim: Usd.Prim, field: str) -> np.ndarray | None:
+    """One per-element value of a prim (a field of ``READ_PRIMVARS``) as its numpy array, None where it has none."""
+    name, dtype, shape = READ_PRIMVARS[field]
+    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(name)
+    value = pv.Get() if pv else None  # read once: a large array is decoded on every Get
+    return None if value is None else np.asarray(value, dtype=dtype).reshape(-1, *shape)
+
+
+def read_element_set(prim: Usd.Prim, origin: np.ndarray | None = None) -> ElementSet:
+    """The element set a composed ``/Twin/<key>`` prim holds, in world coordinates (a part's relative to the
+    ``origin`` of its set)."""
     geom = UsdGeom.PointBased(prim)
-    origin = set_origin(prim)
+    origin = set_origin(prim) if origin is None else origin
     pts = np.asarray(geom.GetPointsAttr().Get(), dtype=np.float64) + origin
-    api = UsdGeom.PrimvarsAPI(prim)
-
-    def pv(name: str, dtype: Any, shape: tuple | None = None) -> np.ndarray | None:
-        p = api.GetPrimvar(name)
-        if not p or p.Get() is None:
-            return None
-        arr = np.asarray(p.Get(), dtype=dtype)
-        return arr.reshape(shape) if shape else arr
-
     faces = None
     ids = None
     if prim.IsA(UsdGeom.Mesh):
@@ -317,22 +361,23 @@ def read_element_set(prim: Usd.Prim) -> ElementSet:
         ids = np.asarray(UsdGeom.Points(prim).GetIdsAttr().Get(), dtype=np.int64)
     return ElementSet(
         key=prim.GetName(), kind="mesh" if faces is not None else "points", points=pts, faces=faces,
-        uncertainty_model=str(api.GetPrimvar("gdt:uncertaintyModel").Get()),
-        covariance=pv("gdt:covariance", np.float32, (-1, 6)), half_widths=pv("gdt:halfWidths", np.float32),
-        rotation=pv("gdt:rotation", np.float32, (-1, 3, 3)), uncertainty_summary=pv("gdt:uncertainty", np.float32),
-        state=pv("gdt:changeState", np.uint8), score=pv("gdt:changeScore", np.float32),
-        source_epoch=pv("gdt:sourceEpoch", np.int32), visible=pv("gdt:visible", bool), ids=ids,
-        p_value=pv("gdt:pValue", np.float32), reason=pv("gdt:fusionReason", np.uint8),
-        reason_ratio=pv("gdt:fusionRatio", np.float32), area_seen=pv("gdt:areaSeen", np.float32),
-        area_removed=pv("gdt:areaRemoved", np.float32), intensity=pv("gdt:intensity", np.float32),
-        scan_color=pv("gdt:scanColor", np.float32, (-1, 3)), identity=identity_of(prim),
-        dof=pv("gdt:studentDof", np.float32), classification=pv("gdt:classification", np.uint8),
-        item=_custom(prim, names.ITEM_KEY))
+        uncertainty_model=uncertainty_model_of(prim), ids=ids, identity=identity_of(prim), item=item_of(prim),
+        **{field: primvar_array(prim, field) for field in READ_PRIMVARS})
+
+
+def uncertainty_model_of(prim: Usd.Prim) -> str:
+    """The uncertainty model a set's (or part's) prim records."""
+    return str(UsdGeom.PrimvarsAPI(prim).GetPrimvar("gdt:uncertaintyModel").Get())
 
 
 def identity_of(prim: Usd.Prim) -> dict[str, str] | None:
     """A set's identity outside the twin (customData ``gdt:identity``), None when it has none."""
     return _custom(prim, names.IDENTITY_KEY)
+
+
+def item_of(prim: Usd.Prim) -> dict[str, str] | None:
+    """What brought a set in (customData ``gdt:item``: epoch, role, dataset name), None when it has no record."""
+    return _custom(prim, names.ITEM_KEY)
 
 
 def _custom(prim: Usd.Prim, key: str) -> dict[str, str] | None:

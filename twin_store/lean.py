@@ -19,6 +19,7 @@ from pxr import Usd, UsdGeom
 from .elements import identity_of, set_origin
 from .errors import TwinStoreError
 from .names import TWIN_PRIM
+from .parts import is_parted, set_extent, set_points, set_values
 from .payloads import PREVIEWS_PRIM, preview_rows
 
 # what a lean read may ask for: the per-element primvar and the dtype it is read as
@@ -38,9 +39,7 @@ def _primvar(prim: Usd.Prim, name: str) -> np.ndarray | None:
     if name not in FIELDS:
         raise TwinStoreError(f"unknown per-element value {name!r} (known: {', '.join(FIELDS)})")
     primvar, dtype = FIELDS[name]
-    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(primvar)
-    value = pv.Get() if pv else None
-    return None if value is None else np.asarray(value, dtype=dtype)
+    return set_values(prim, primvar, dtype)
 
 
 class LeanSet:
@@ -92,14 +91,13 @@ class LeanSet:
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """World lower and upper corners of the set (from its extent; from its points where it has none)."""
-        extent = UsdGeom.PointBased(self._prim).GetExtentAttr().Get()
+        extent = set_extent(self._prim)
         local = np.asarray(extent if extent is not None else self.points()[0], dtype=np.float64)
         return local.min(axis=0) + set_origin(self._prim), local.max(axis=0) + set_origin(self._prim)
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         """All points (mesh vertices) as float32 relative to the set's origin, and the origin (float64)."""
-        value = UsdGeom.PointBased(self._prim).GetPointsAttr().Get()
-        return np.asarray(value, dtype=np.float32).reshape(-1, 3), set_origin(self._prim)
+        return set_points(self._prim), set_origin(self._prim)
 
     def faces(self) -> np.ndarray:
         """A mesh's triangles (F,3) into its points."""
@@ -124,7 +122,7 @@ def iter_lean_sets(stage: Usd.Stage, before: Usd.Stage | None) -> Iterator[LeanS
     epoch (``before``; None at the first epoch) and its preview, if it has one."""
     twin = stage.GetPrimAtPath(TWIN_PRIM)
     for child in twin.GetChildren() if twin else []:
-        if not child.IsA(UsdGeom.PointBased):
+        if not child.IsA(UsdGeom.PointBased) and not is_parted(child):
             continue
         old = before.GetPrimAtPath(child.GetPath()) if before is not None else None
         preview = stage.GetPrimAtPath(f"{PREVIEWS_PRIM}/{child.GetName()}")

@@ -25,7 +25,7 @@ from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from . import guides
 from .branch import branch
-from .elements import ElementSet, define_element_set, identity_of, override_element_set, read_element_set
+from .elements import ElementSet, define_element_set, identity_of, override_element_set
 from .errors import TwinStoreError
 from .history import EpochEntry, SetDiff, count_states, set_diff
 from .integrity import LayerDigests, run_lock_problems
@@ -33,6 +33,7 @@ from .layers import export_atomic, open_layer, usd_message
 from .lean import LeanSet, iter_lean_sets
 from .lock import writer_lock
 from .names import EPOCH_DIR, REASON_NAMES, ROOT_NAME, STATE_NAMES, TWIN_PRIM
+from .parts import is_parted, override_parted_set, read_set, set_values
 from .payloads import define_payload_set, relative_payloads, restate_preview, wants_payload
 from .segments import Segment
 from .set_source import set_keys
@@ -241,11 +242,14 @@ class TwinStore:
                                  f"visible element may be left out: it stays as it was)")
         written = []
         for es in elements:
-            if es.key in known:
+            if es.key in known and is_parted(known[es.key]):
+                override_parted_set(known[es.key], es, epoch_id)
+                restate_preview(stage, es)
+            elif es.key in known:
                 override_element_set(known[es.key], es, epoch_id)
                 restate_preview(stage, es)
             elif wants_payload(es):
-                written.append(define_payload_set(stage, es, self._path / EPOCH_DIR, epoch_id))
+                written += define_payload_set(stage, es, self._path / EPOCH_DIR, epoch_id)
             else:
                 define_element_set(stage, es)
         return written
@@ -277,7 +281,7 @@ class TwinStore:
         wanted = None if keys is None else set(keys)
         for child in twin.GetChildren() if twin else []:
             if (wanted is None or child.GetName() in wanted) and (retired or not _retired(child)):
-                yield read_element_set(child)
+                yield read_set(child)
 
     def retired_removed(self, epoch_id: str) -> dict[str, int]:
         """Per retired set at ``epoch_id`` (one whose elements are all hidden: it never changes again, and later
@@ -288,8 +292,8 @@ class TwinStore:
         out = {}
         for child in twin.GetChildren() if twin else []:
             if _retired(child):
-                states = UsdGeom.PrimvarsAPI(child).GetPrimvar("gdt:changeState").Get()
-                out[child.GetName()] = int(np.count_nonzero(np.asarray(states) == removed))
+                states = set_values(child, "gdt:changeState", np.uint8)
+                out[child.GetName()] = int(np.count_nonzero(states == removed))
         return out
 
     def branch(self, target: str | Path, epochs: Sequence[str]) -> tuple[TwinStore, int]:

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import gdt_pipeline.report.scene as report_scene
+import twin_store.parts as parts
 import twin_store.payloads as payloads
 from gdt_pipeline.report import default_output, write_report
 from gdt_pipeline.report.voxels import VoxelSampler, voxel_keys
@@ -109,9 +111,12 @@ def test_the_command_writes_beside_the_twin_by_default(twin: Path) -> None:
 
 @pytest.fixture
 def payload_twin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    # 200 points count as "large" here, and the preview keeps every 4th of them
+    # 200 points count as "large" here, in parts of 64, 64, 64 and 8 points, and the preview keeps every 4th;
+    # the report's chunks (50 points) do not line up with the parts
     monkeypatch.setattr(payloads, "PAYLOAD_ELEMENTS", 100)
+    monkeypatch.setattr(parts, "PART_ELEMENTS", 64)
     monkeypatch.setattr(payloads, "PREVIEW_POINTS", 50)
+    monkeypatch.setattr(report_scene, "CHUNK", 50)
     store = TwinStore.create(tmp_path / "twin")
     store.write_epoch("E0", [mesh_set()], {"epoch": {"id": "E0", "index": 0, "role": "as-designed"}})
     store.write_epoch("E1", [mesh_set(), points_set()], {"epoch": {"id": "E1", "index": 1, "role": "as-is"}})
@@ -129,6 +134,10 @@ def test_lean_reads_match_whole_reads_and_payload_sets_come_from_their_previews(
             assert np.array_equal(es.field(name), getattr(full, attr), equal_nan=True)
         local, origin = es.points()
         assert np.allclose(local + origin, full.points, atol=1e-4)
+        pieces, same_origin = es.point_parts()
+        pieces = list(pieces)
+        assert np.array_equal(same_origin, origin) and np.array_equal(np.concatenate([p for _, p in pieces]), local)
+        assert [first for first, _ in pieces] == ([0, 64, 128, 192] if es.kind == "points" else [0])
         assert es.has_preview == (es.kind == "points") and es.new_here == (es.key == "E1_scan")
     small = write_report(payload_twin, tmp_path / "small.html", budget=40)
     html = (tmp_path / "small.html").read_text(encoding="utf-8")

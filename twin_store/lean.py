@@ -19,7 +19,7 @@ from pxr import Usd, UsdGeom
 from .elements import identity_of, set_origin
 from .errors import TwinStoreError
 from .names import TWIN_PRIM
-from .parts import is_parted, set_extent, set_points, set_values
+from .parts import is_parted, iter_point_parts, set_extent, set_points, set_values
 from .payloads import PREVIEWS_PRIM, preview_rows
 
 # what a lean read may ask for: the per-element primvar and the dtype it is read as
@@ -98,6 +98,11 @@ class LeanSet:
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         """All points (mesh vertices) as float32 relative to the set's origin, and the origin (float64)."""
         return set_points(self._prim), set_origin(self._prim)
+
+    def point_parts(self) -> tuple[Iterator[tuple[int, np.ndarray]], np.ndarray]:
+        """The points as ``points`` gives them, but part by part for a set written in parts (``parts``): an
+        iterator of (first row, float32 points relative to the origin), and the origin."""
+        return iter_point_parts(self._prim), set_origin(self._prim)
 
     def faces(self) -> np.ndarray:
         """A mesh's triangles (F,3) into its points."""

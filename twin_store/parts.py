@@ -14,7 +14,7 @@ parts (one prim) reads and takes later epochs as it always did.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -137,23 +137,41 @@ def _column(prim: Usd.Prim, prims: list[Usd.Prim], ranges: list[tuple[int, int]]
 
 def set_values(prim: Usd.Prim, primvar: str, dtype: Any) -> np.ndarray | None:
     """One per-element primvar of a set over all its elements (its parts' in row order), None where it has none."""
-    prims = part_prims(prim) if is_parted(prim) else [prim]
-    pieces = []
-    for one in prims:
+    def read(one: Usd.Prim) -> np.ndarray | None:
         pv = UsdGeom.PrimvarsAPI(one).GetPrimvar(primvar)
         value = pv.Get() if pv else None
-        if value is None:
-            return None
-        pieces.append(np.asarray(value, dtype=dtype))
-    return pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
+        return None if value is None else np.asarray(value, dtype=dtype)
+
+    return _over_parts(prim, read)
 
 
 def set_points(prim: Usd.Prim) -> np.ndarray:
     """A set's points (mesh vertices) as float32 relative to its origin (``set_origin``), its parts' in row order."""
-    prims = part_prims(prim) if is_parted(prim) else [prim]
-    pieces = [np.asarray(UsdGeom.PointBased(one).GetPointsAttr().Get(), dtype=np.float32).reshape(-1, 3)
-              for one in prims]
-    return pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
+    return _over_parts(prim, lambda one: np.asarray(UsdGeom.PointBased(one).GetPointsAttr().Get(),
+                                                    dtype=np.float32).reshape(-1, 3))
+
+
+def iter_point_parts(prim: Usd.Prim) -> Iterator[tuple[int, np.ndarray]]:
+    """A point set's points part by part: each part's first row and its points (float32, relative to the set's
+    origin); one piece for a set in one prim. A reader that reduces them as they come holds one part."""
+    if not is_parted(prim):
+        yield 0, set_points(prim)
+        return
+    n, size = parts_info(prim)
+    for one, (start, stop) in zip(part_prims(prim), part_ranges(n, size), strict=True):
+        local = set_points(one)
+        if len(local) != stop - start:
+            raise TwinStoreError(f"element set {prim.GetPath()}: its part {one.GetName()} holds {len(local)} points "
+                                 f"for rows {start}:{stop}; the twin is damaged")
+        yield start, local
+
+
+def _over_parts(prim: Usd.Prim, read: Callable[[Usd.Prim], np.ndarray | None]) -> np.ndarray | None:
+    """``read`` of a one-prim set, or of a parted set's parts into one array."""
+    if not is_parted(prim):
+        return read(prim)
+    n, size = parts_info(prim)
+    return _column(prim, part_prims(prim), part_ranges(n, size), read)
 
 
 def set_extent(prim: Usd.Prim) -> np.ndarray | None:

@@ -118,12 +118,15 @@ def _feed_points(es: LeanSet, sampler: VoxelSampler, centre: np.ndarray, from_pr
     preview = es.preview(len(es.field("state"))) if from_preview else None
     ids, layers = _layer_ids(es, preview[2] if preview is not None else None)
     release_freed_memory()  # the per-element values are gone: their heap goes back before the points come in
-    local, origin = preview[:2] if preview is not None else es.points()
+    # a set written in parts comes part by part, so that one part's points are held, not the set's
+    pieces, origin = ([(0, preview[0])], preview[1]) if preview is not None else es.point_parts()
     offset = (origin - centre).astype(np.float32)
-    for start in range(0, len(local), CHUNK):
-        part = ids[start:start + CHUNK]
-        for k in np.unique(part[part != NO_LAYER]):
-            sampler.add(layers[k], local[start:start + CHUNK][part == k] + offset)
+    for first, local in pieces:
+        for start in range(0, len(local), CHUNK):
+            chunk = local[start:start + CHUNK]
+            part = ids[first + start:first + start + len(chunk)]
+            for k in np.unique(part[part != NO_LAYER]):
+                sampler.add(layers[k], chunk[part == k] + offset)
     return preview is not None
 
 

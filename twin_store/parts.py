@@ -3,8 +3,8 @@
 A USD array is one value, so a set written as one prim is built whole in memory as USD arrays (about 140 B a point
 beside the set's own columns) and a later epoch that changes one state restates every array of the set. A large set
 (see ``payloads``) is therefore written in parts: ``/Twin/<key>`` is an Xform holding the set's translate (its
-points' origin), its identity and item, and ``gdt:parts`` (customData: the number of parts, of elements, and the
-rows a part holds); its children ``part_0000``, ``part_0001``, ... are Points prims holding consecutive rows, relative
+points' origin), its identity and item, and ``gdt:parts`` (customData: its number of elements and the rows a part
+holds); its children ``part_0000``, ``part_0001``, ... are Points prims holding consecutive rows, relative
 to that origin, each in a payload layer of its own. Writing holds one part's arrays at a time, and a later epoch
 restates only the parts whose values changed, on the part prims. Read back (``read_set``, ``set_values``), the parts
 are one set in row order, so segments' member rows and every reader see the set as before. A set written before
@@ -123,9 +123,9 @@ def _column(prim: Usd.Prim, prims: list[Usd.Prim], ranges: list[tuple[int, int]]
     column = None
     for one, (start, stop) in zip(prims, ranges, strict=True):
         value = read(one)
+        if value is None and column is None and all(read(p) is None for p in prims[1:]):
+            return None  # a value the set does not have (no part has it)
         if value is None or len(value) != stop - start:
-            if value is None and column is None and start == 0 and all(read(p) is None for p in prims[1:]):
-                return None
             raise TwinStoreError(f"element set {prim.GetPath()}: its part {one.GetName()} holds "
                                  f"{'no' if value is None else len(value)} values for rows {start}:{stop}; the "
                                  f"twin is damaged")

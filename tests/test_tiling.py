@@ -29,7 +29,6 @@ from gdt_pipeline.tiling import (
     merge_correspondences,
     size_for_budget,
     take_candidates,
-    tile_members,
 )
 from gdt_pipeline.types import MappedRows, concat_uncertainty
 
@@ -44,7 +43,7 @@ def test_every_element_is_in_exactly_one_core() -> None:
     rng = np.random.default_rng(1)
     clouds = [_cloud(rng, 5000), _cloud(rng, 300)]
     grid = grid_for(clouds, 0.25)
-    members = tile_members(grid, clouds)
+    members = members_of([CellIndex(grid, c) for c in clouds])
     for d, cloud in enumerate(clouds):
         ids = np.concatenate([m[d] for m in members.values()])
         assert np.array_equal(np.sort(ids), np.arange(len(cloud)))
@@ -376,7 +375,7 @@ def test_tile_index_arrays_are_int32_and_hold_what_a_scan_of_every_position_find
     assert cells.dtype == np.int32
     ijk = np.clip(np.floor((pos - grid.origin) / grid.size).astype(np.int64), 0, np.asarray(grid.shape) - 1)
     assert np.array_equal(cells, ijk[:, 0] + grid.shape[0] * (ijk[:, 1] + grid.shape[1] * ijk[:, 2]))
-    members = tile_members(grid, [pos])
+    members = members_of([CellIndex(grid, pos)])
     for tile, (ids,) in members.items():
         assert ids.dtype == np.int32 and np.array_equal(ids, np.flatnonzero(cells == tile))
     lo, hi = np.array([0.2, 0.1, 0.4]), np.array([0.7, 0.35, 0.9])

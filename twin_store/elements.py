@@ -23,10 +23,14 @@ DOC_DOF = ("Student t degrees of freedom per element of a heavy-tailed gaussian 
 Primvars = dict[str, tuple[Any, Any, np.ndarray, int, str | None]]
 # where a part of a larger set stands: the set's origin (its points are relative to it) and its diagonal (widths)
 Frame = tuple[np.ndarray, float]
-# the fields holding one value (or row) per element
-PER_ELEMENT = ("points", "covariance", "half_widths", "rotation", "uncertainty_summary", "state", "score",
-               "source_epoch", "visible", "ids", "display_color", "p_value", "reason", "reason_ratio", "area_seen",
-               "area_removed", "intensity", "scan_color", "dof", "classification")
+# the optional and per-element fields besides the geometry, and the shape of one element's value
+ROW_SHAPES: dict[str, tuple[int, ...]] = {
+    "uncertainty_summary": (), "state": (), "score": (), "source_epoch": (), "visible": (), "covariance": (6,),
+    "half_widths": (3,), "rotation": (3, 3), "ids": (), "display_color": (3,), "p_value": (), "reason": (),
+    "reason_ratio": (), "area_seen": (), "area_removed": (), "intensity": (), "scan_color": (3,), "dof": (),
+    "classification": ()}
+# the fields holding one value (or row) per element of a point set
+PER_ELEMENT = ("points", *ROW_SHAPES)
 
 
 @dataclass(frozen=True)
@@ -81,12 +85,8 @@ class ElementSet:
             if self.faces is not None:
                 raise TwinStoreError(f"{self.key}: a point set has no faces")
             n = len(pts)
-        shapes = {"uncertainty_summary": (n,), "state": (n,), "score": (n,), "source_epoch": (n,), "visible": (n,),
-                  "covariance": (n, 6), "half_widths": (n, 3), "rotation": (n, 3, 3), "ids": (n,),
-                  "display_color": (n, 3), "p_value": (n,), "reason": (n,), "reason_ratio": (n,),
-                  "area_seen": (n,), "area_removed": (n,), "intensity": (n,), "scan_color": (n, 3), "dof": (n,),
-                  "classification": (n,)}
-        for name, shape in shapes.items():
+        for name, row in ROW_SHAPES.items():
+            shape = (n, *row)
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
                 raise TwinStoreError(f"{self.key}: {name} must have shape {shape}, got {np.shape(value)}")
@@ -325,26 +325,26 @@ def set_origin(prim: Usd.Prim) -> np.ndarray:
     return np.asarray(ops[0].Get(), dtype=np.float64) if ops else np.zeros(3)
 
 
-# field -> (primvar, dtype, shape of one element's value) of the per-element values a set is read back with
-READ_PRIMVARS: dict[str, tuple[str, Any, tuple[int, ...]]] = {
-    "covariance": ("gdt:covariance", np.float32, (6,)), "half_widths": ("gdt:halfWidths", np.float32, (3,)),
-    "rotation": ("gdt:rotation", np.float32, (3, 3)), "uncertainty_summary": ("gdt:uncertainty", np.float32, ()),
-    "state": ("gdt:changeState", np.uint8, ()), "score": ("gdt:changeScore", np.float32, ()),
-    "source_epoch": ("gdt:sourceEpoch", np.int32, ()), "visible": ("gdt:visible", np.bool_, ()),
-    "p_value": ("gdt:pValue", np.float32, ()), "reason": ("gdt:fusionReason", np.uint8, ()),
-    "reason_ratio": ("gdt:fusionRatio", np.float32, ()), "area_seen": ("gdt:areaSeen", np.float32, ()),
-    "area_removed": ("gdt:areaRemoved", np.float32, ()), "intensity": ("gdt:intensity", np.float32, ()),
-    "scan_color": ("gdt:scanColor", np.float32, (3,)), "dof": ("gdt:studentDof", np.float32, ()),
-    "classification": ("gdt:classification", np.uint8, ()),
+# field -> (primvar, dtype) of the per-element values a set is read back with
+READ_PRIMVARS: dict[str, tuple[str, Any]] = {
+    "covariance": ("gdt:covariance", np.float32), "half_widths": ("gdt:halfWidths", np.float32),
+    "rotation": ("gdt:rotation", np.float32), "uncertainty_summary": ("gdt:uncertainty", np.float32),
+    "state": ("gdt:changeState", np.uint8), "score": ("gdt:changeScore", np.float32),
+    "source_epoch": ("gdt:sourceEpoch", np.int32), "visible": ("gdt:visible", np.bool_),
+    "p_value": ("gdt:pValue", np.float32), "reason": ("gdt:fusionReason", np.uint8),
+    "reason_ratio": ("gdt:fusionRatio", np.float32), "area_seen": ("gdt:areaSeen", np.float32),
+    "area_removed": ("gdt:areaRemoved", np.float32), "intensity": ("gdt:intensity", np.float32),
+    "scan_color": ("gdt:scanColor", np.float32), "dof": ("gdt:studentDof", np.float32),
+    "classification": ("gdt:classification", np.uint8),
 }
 
 
 def primvar_array(prim: Usd.Prim, field: str) -> np.ndarray | None:
     """One per-element value of a prim (a field of ``READ_PRIMVARS``) as its numpy array, None where it has none."""
-    name, dtype, shape = READ_PRIMVARS[field]
+    name, dtype = READ_PRIMVARS[field]
     pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(name)
     value = pv.Get() if pv else None  # read once: a large array is decoded on every Get
-    return None if value is None else np.asarray(value, dtype=dtype).reshape(-1, *shape)
+    return None if value is None else np.asarray(value, dtype=dtype).reshape(-1, *ROW_SHAPES[field])
 
 
 def read_element_set(prim: Usd.Prim, origin: np.ndarray | None = None) -> ElementSet:

@@ -11,35 +11,26 @@ they are, so that its own points need not be read at all.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Any
 
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from .elements import identity_of, set_origin
+from .elements import READ_PRIMVARS, identity_of, set_origin
 from .errors import TwinStoreError
 from .names import TWIN_PRIM
 from .parts import is_parted, iter_point_parts, set_extent, set_points, set_values
 from .payloads import PREVIEWS_PRIM, preview_rows
 
-# what a lean read may ask for: the per-element primvar and the dtype it is read as
-FIELDS: dict[str, tuple[str, Any]] = {
-    "state": ("gdt:changeState", np.uint8),
-    "visible": ("gdt:visible", np.bool_),
-    "source_epoch": ("gdt:sourceEpoch", np.int32),
-    "score": ("gdt:changeScore", np.float32),
-    "uncertainty": ("gdt:uncertainty", np.float32),
-    "p_value": ("gdt:pValue", np.float32),
-    "reason": ("gdt:fusionReason", np.uint8),
-}
+# what a lean read may ask for: its name -> the ElementSet field (``READ_PRIMVARS``: primvar and dtype) it reads
+FIELDS: dict[str, str] = {"state": "state", "visible": "visible", "source_epoch": "source_epoch", "score": "score",
+                          "uncertainty": "uncertainty_summary", "p_value": "p_value", "reason": "reason"}
 
 
 def _primvar(prim: Usd.Prim, name: str) -> np.ndarray | None:
-    """One per-element value of a prim (None when the prim has none); arrays share USD's memory, read-only."""
+    """One per-element value of a prim (None when the prim has none); a one-prim set's arrays share USD's memory."""
     if name not in FIELDS:
         raise TwinStoreError(f"unknown per-element value {name!r} (known: {', '.join(FIELDS)})")
-    primvar, dtype = FIELDS[name]
-    return set_values(prim, primvar, dtype)
+    return set_values(prim, FIELDS[name])
 
 
 class LeanSet:
@@ -82,7 +73,7 @@ class LeanSet:
         """One per-element value (a name of ``FIELDS``) over all elements, read now."""
         value = _primvar(self._prim, name)
         if value is None:
-            raise TwinStoreError(f"element set {self.key} has no {FIELDS[name][0]}")
+            raise TwinStoreError(f"element set {self.key} has no {READ_PRIMVARS[FIELDS[name]][0]}")
         return value
 
     def field_before(self, name: str) -> np.ndarray | None:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Iterator
-from typing import Any
 
 import numpy as np
 from pxr import Usd, UsdGeom
@@ -24,13 +23,13 @@ from .elements import (
     PER_ELEMENT,
     READ_PRIMVARS,
     ElementSet,
+    diagonal,
     identity_of,
     item_of,
     override_element_set,
     primvar_array,
     read_element_set,
     restate_prim_visibility,
-    set_frame,
     set_origin,
     uncertainty_model_of,
 )
@@ -93,7 +92,7 @@ def override_parted_set(prim: Usd.Prim, es: ElementSet, epoch_id: str) -> None:
         raise TwinStoreError(f"epoch {epoch_id}: geometry of an existing element set cannot change: {es.key} has "
                              f"{n} points, the epoch gives {es.n_elements} {es.kind} elements (changed geometry "
                              f"comes in as a new set)")
-    frame = (set_origin(prim), set_frame(es.points)[1])
+    frame = (set_origin(prim), diagonal(np.asarray(es.points, dtype=np.float64)))
     for part, (start, stop) in zip(part_prims(prim), part_ranges(n, size), strict=True):
         override_element_set(part, rows_of(es, start, stop), epoch_id, frame)
     restate_prim_visibility(prim, bool(np.any(es.visible)))
@@ -135,14 +134,10 @@ def _column(prim: Usd.Prim, prims: list[Usd.Prim], ranges: list[tuple[int, int]]
     return column
 
 
-def set_values(prim: Usd.Prim, primvar: str, dtype: Any) -> np.ndarray | None:
-    """One per-element primvar of a set over all its elements (its parts' in row order), None where it has none."""
-    def read(one: Usd.Prim) -> np.ndarray | None:
-        pv = UsdGeom.PrimvarsAPI(one).GetPrimvar(primvar)
-        value = pv.Get() if pv else None
-        return None if value is None else np.asarray(value, dtype=dtype)
-
-    return _over_parts(prim, read)
+def set_values(prim: Usd.Prim, field: str) -> np.ndarray | None:
+    """One per-element value of a set (a field of ``READ_PRIMVARS``) over all its elements, its parts' in row
+    order; None where it has none."""
+    return _over_parts(prim, lambda one: primvar_array(one, field))
 
 
 def set_points(prim: Usd.Prim) -> np.ndarray:

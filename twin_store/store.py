@@ -242,11 +242,9 @@ class TwinStore:
                                  f"visible element may be left out: it stays as it was)")
         written = []
         for es in elements:
-            if es.key in known and is_parted(known[es.key]):
-                override_parted_set(known[es.key], es, epoch_id)
-                restate_preview(stage, es)
-            elif es.key in known:
-                override_element_set(known[es.key], es, epoch_id)
+            if es.key in known:
+                override = override_parted_set if is_parted(known[es.key]) else override_element_set
+                override(known[es.key], es, epoch_id)
                 restate_preview(stage, es)
             elif wants_payload(es):
                 written += define_payload_set(stage, es, self._path / EPOCH_DIR, epoch_id)
@@ -292,7 +290,7 @@ class TwinStore:
         out = {}
         for child in twin.GetChildren() if twin else []:
             if _retired(child):
-                states = set_values(child, "gdt:changeState", np.uint8)
+                states = set_values(child, "state")
                 out[child.GetName()] = int(np.count_nonzero(states == removed))
         return out
 

@@ -68,7 +68,3 @@ def members_of(indexes: Sequence[CellIndex]) -> dict[int, list[np.ndarray]]:
     occupied = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
     return {int(t): [ix.in_cell(int(t)) for ix in indexes] for t in occupied}
 
-
-def tile_members(grid: TileGrid, positions: Sequence[np.ndarray]) -> dict[int, list[np.ndarray]]:
-    """Per non-empty tile (in tile order), per dataset, the indices of the elements in its core."""
-    return members_of([CellIndex(grid, p) for p in positions])

@@ -67,4 +67,3 @@ def members_of(indexes: Sequence[CellIndex]) -> dict[int, list[np.ndarray]]:
     parts = [ix.occupied for ix in indexes if len(ix.occupied)]
     occupied = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
     return {int(t): [ix.in_cell(int(t)) for ix in indexes] for t in occupied}
-

@@ -1,8 +1,11 @@
-"""What writing a large point set into the twin costs (issue 36, thirteenth part): one set written as the first
-epoch, then an append that changes the states of a few of its points, then the set read back, each step's peak RSS
-above what the process held before it (``/proc/self/clear_refs`` resets the peak), its seconds and the epoch's
-files; the set written in parts of ``PART_ELEMENTS`` rows (the default) side by side with the same set in one part
-(what one prim cost before parts), each case in a child process of its own, medians of ``--repeats`` runs.
+"""What writing a large point set into the twin costs (issue 36, thirteenth and fourteenth parts): one composite
+item (a georeferenced scan with per-point covariances, scores, states and fusion reasons) written as the first
+epoch the way the runner writes it (``composite_to_elements``), then an append that changes the states of a few of
+its points, then the set read back, each step's peak RSS above what the process held before it (the composite;
+``/proc/self/clear_refs`` resets the peak), its seconds and the epoch's files. Three cases side by side, each in a
+child process of its own, medians of ``--repeats`` runs: parts of ``PART_ELEMENTS`` rows each made from the item as
+the writer asks for it (now); the same parts from the item's element set made whole first (the thirteenth part);
+and one part (what one prim cost before parts).
 
     .venv/bin/python bench/twin_write.py [--points 5000000] [--changed 1000] [--repeats 3]
 """
@@ -39,21 +42,31 @@ def _metered(step):
     return time.perf_counter() - start, _status("VmHWM") - before
 
 
-def scan_set(n: int, seed: int = 0):
-    """A georeferenced scan of ``n`` points with covariances, scores, states and fusion reasons."""
-    from twin_store import ElementSet
+def scan_item(n: int, seed: int = 0):
+    """A composite item: a georeferenced scan of ``n`` points with covariances, scores, states and fusion reasons."""
+    from gdt_pipeline.types import CompositeItem, Dataset, GaussianUncertainty
 
     rng = np.random.default_rng(seed)
-    cov = np.tile(np.array([1e-6, 0, 0, 1e-6, 0, 1e-6]), (n, 1))
+    cov = np.empty((n, 3, 3))
+    cov[:] = np.eye(3) * 1e-6
     utm = np.array([500_000.0, 5_400_000.0, 100.0])
-    return ElementSet(key="scan", kind="points", points=rng.normal(size=(n, 3)) + utm,
-                      faces=None, uncertainty_model="gaussian", covariance=cov, half_widths=None, rotation=None,
-                      uncertainty_summary=np.full(n, 1e-3), state=rng.integers(0, 4, n).astype(np.uint8),
-                      score=rng.random(n), source_epoch=np.ones(n, np.int32), visible=np.ones(n, bool),
-                      reason=np.full(n, 2, np.uint8), reason_ratio=np.full(n, np.nan))
+    ds = Dataset(name="scan", role="as-is", points=rng.normal(size=(n, 3)) + utm, uncertainty=GaussianUncertainty(cov))
+    return CompositeItem(key="scan", dataset=ds, epoch="E0", state=rng.integers(0, 4, n).astype(np.uint8),
+                         score=rng.random(n), source_epoch=np.ones(n, np.int32), visible=np.ones(n, bool),
+                         reason=np.full(n, 2, np.uint8))
 
 
-def child(n: int, changed: int, part_elements: int) -> dict:
+def _sets(item, made_whole: bool) -> list:
+    """The item as the runner hands it to the writer, or its element set made whole first."""
+    from gdt_pipeline.twin_elements import composite_to_elements
+    from gdt_pipeline.types import Composite
+    from twin_store import whole
+
+    sets = composite_to_elements(Composite(items=(item,)))
+    return [whole(s) for s in sets] if made_whole else list(sets)
+
+
+def child(n: int, changed: int, part_elements: int, made_whole: bool) -> dict:
     """One case, in this process: write, append, read; the figures as a dict."""
     import dataclasses
 
@@ -61,14 +74,14 @@ def child(n: int, changed: int, part_elements: int) -> dict:
     from twin_store import TwinStore
 
     parts.PART_ELEMENTS = part_elements
-    es = scan_set(n)
+    item = scan_item(n)
     with tempfile.TemporaryDirectory() as tmp:
         store = TwinStore.create(Path(tmp) / "twin")
-        write_s, write_mb = _metered(lambda: store.write_epoch("E0", [es], {"epoch": "E0"}))
-        state = np.array(es.state)
+        write_s, write_mb = _metered(lambda: store.write_epoch("E0", _sets(item, made_whole), {"epoch": "E0"}))
+        state = np.array(item.state)
         state[:changed] = 2
-        later = dataclasses.replace(es, state=state)
-        append_s, append_mb = _metered(lambda: store.write_epoch("E1", [later], {"epoch": "E1"}))
+        later = dataclasses.replace(item, state=state)
+        append_s, append_mb = _metered(lambda: store.write_epoch("E1", _sets(later, made_whole), {"epoch": "E1"}))
         read_s, read_mb = _metered(lambda: store.read_epoch("E1"))
         files = {p.name: p.stat().st_size for p in (Path(tmp) / "twin" / "epochs").iterdir()}
     return {"write_s": write_s, "write_mb": write_mb, "append_s": append_s, "append_mb": append_mb,
@@ -83,18 +96,23 @@ def main() -> None:
     ap.add_argument("--changed", type=int, default=1000)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--whole", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child is not None:
-        print(json.dumps(child(args.points, args.changed, args.child)))
+        print(json.dumps(child(args.points, args.changed, args.child, args.whole)))
         return
     import twin_store.parts as parts
 
-    cases = {f"parts of {parts.PART_ELEMENTS:,}": parts.PART_ELEMENTS, "one part (as one prim before)": args.points}
+    size = parts.PART_ELEMENTS
+    cases = {f"parts of {size:,}, each made as written (now)": (size, False),
+             f"parts of {size:,}, the set made whole first": (size, True),
+             "one part (as one prim before parts)": (args.points, True)}
     runs: dict[str, list[dict]] = {name: [] for name in cases}
     for _ in range(args.repeats):
-        for name, size in cases.items():  # interleaved, so that the machine's drift hits both alike
+        for name, (rows, made_whole) in cases.items():  # interleaved, so that the machine's drift hits all alike
             out = subprocess.run([sys.executable, __file__, "--points", str(args.points), "--changed",
-                                  str(args.changed), "--child", str(size)], check=True, capture_output=True, text=True)
+                                  str(args.changed), "--child", str(rows), *(["--whole"] if made_whole else [])],
+                                 check=True, capture_output=True, text=True)
             runs[name].append(json.loads(out.stdout.strip().splitlines()[-1]))
     print(f"{args.points:,} points, {args.changed:,} states changed in the append, medians of {args.repeats} runs")
     print("| case | write: s | write: peak MB | B/point | append: s | append: peak MB | E1 layer MB | read: s | "

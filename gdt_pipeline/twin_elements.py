@@ -8,43 +8,66 @@ from typing import Any
 
 import numpy as np
 
-from twin_store import ElementSet, SetsOnDemand, TwinStore
+from twin_store import ElementSet, RowsOnDemand, SetsOnDemand, TwinStore
 
 from .types import ChangeState, Composite, CompositeItem, Dataset
 
 
 def composite_to_elements(composite: Composite) -> SetsOnDemand:
     """One element set per composite item, with its uncertainty, states and scores, each made as the writer reads it
-    (its packed covariances and float32 columns are 100 B a point: one set's at a time, not the epoch's)."""
+    (its packed covariances and float32 columns are 100 B a point: one set's at a time, not the epoch's); a point
+    set's made a run of rows at a time (``RowsOnDemand``), so a large set written in parts holds one part's."""
     items = composite.items
-    return SetsOnDemand([it.key for it in items], lambda i: _element_set(items[i]))
+    return SetsOnDemand([it.key for it in items], lambda i: _set_source(items[i]))
 
 
-def _element_set(it: CompositeItem) -> ElementSet:
-    """The element set of one composite item."""
+def _set_source(it: CompositeItem) -> ElementSet | RowsOnDemand:
+    """A mesh item's element set, or a point item's rows on demand."""
     ds = it.dataset
-    n = ds.n_elements
+    if ds.faces is not None:
+        return _element_set(it, slice(None))
+    return RowsOnDemand(key=it.key, points=ds.points, state=it.state, visible=it.visible,
+                        identity=dict(ds.meta) or None, item=_item(it),
+                        make=lambda start, stop: _element_set(it, slice(start, stop)))
+
+
+def _element_set(it: CompositeItem, rows: slice) -> ElementSet:
+    """The element set of the elements ``rows`` of one composite item (of a point item: a run of its points)."""
+    ds = it.dataset
+    points = ds.points if ds.faces is not None else ds.points[rows]
+    n = ds.n_elements if ds.faces is not None else len(points)
     unc = ds.uncertainty
+    if unc is not None and rows != slice(None):
+        unc = unc.take(rows)
     arrays: dict[str, np.ndarray | None] = {"covariance": None, "half_widths": None, "rotation": None}
     if unc is not None:
         arrays.update(unc.stored(n))
-    return ElementSet(key=it.key, kind=ds.kind, points=ds.points, faces=ds.faces,
+    return ElementSet(key=it.key, kind=ds.kind, points=points, faces=ds.faces,
                       uncertainty_model="none" if unc is None else unc.model, **arrays,
                       uncertainty_summary=np.full(n, np.nan) if unc is None else np.asarray(unc.summary(n)),
-                      state=it.state, score=it.score.astype(np.float32), source_epoch=it.source_epoch,
-                      visible=it.visible,
-                      p_value=None if it.p_value is None else it.p_value.astype(np.float32),
-                      reason=it.reason, reason_ratio=it.reason_ratio.astype(np.float32),
-                      area_seen=_f32(it.area_seen), area_removed=_f32(it.area_removed),
-                      intensity=_f32(ds.fields.get("intensity")), scan_color=_f32(ds.fields.get("color")),
-                      identity=dict(ds.meta) or None, classification=_classes(ds),
-                      item={"epoch": it.epoch, "role": ds.role, "name": ds.name})
+                      state=it.state[rows], score=it.score[rows].astype(np.float32),
+                      source_epoch=it.source_epoch[rows], visible=it.visible[rows],
+                      p_value=None if it.p_value is None else it.p_value[rows].astype(np.float32),
+                      reason=_rows(it.reason, rows), reason_ratio=_f32(_rows(it.reason_ratio, rows)),
+                      area_seen=_f32(_rows(it.area_seen, rows)), area_removed=_f32(_rows(it.area_removed, rows)),
+                      intensity=_f32(_rows(ds.fields.get("intensity"), rows)),
+                      scan_color=_f32(_rows(ds.fields.get("color"), rows)),
+                      identity=dict(ds.meta) or None, classification=_classes(ds, rows), item=_item(it))
 
 
-def _classes(ds: Dataset) -> np.ndarray | None:
-    """The LAS classes of a dataset's points, as uint8 (None when its reader gave none)."""
+def _item(it: CompositeItem) -> dict[str, str]:
+    """What brought the item's set in: its epoch, role and dataset name."""
+    return {"epoch": it.epoch, "role": it.dataset.role, "name": it.dataset.name}
+
+
+def _rows(values: np.ndarray | None, rows: slice) -> np.ndarray | None:
+    return None if values is None else values[rows]
+
+
+def _classes(ds: Dataset, rows: slice) -> np.ndarray | None:
+    """The LAS classes of the dataset's elements ``rows``, as uint8 (None when its reader gave none)."""
     values = ds.fields.get("classification")
-    return None if values is None else np.asarray(values).astype(np.uint8)
+    return None if values is None else np.asarray(values)[rows].astype(np.uint8)
 
 
 def _f32(values: np.ndarray | None) -> np.ndarray | None:

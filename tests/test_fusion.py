@@ -186,6 +186,31 @@ def test_each_element_records_why_it_is_in_the_composite_and_the_twin_keeps_it(r
     assert all(name.upper() == FusionReason(i).name for i, name in enumerate(REASON_NAMES))
 
 
+def test_a_point_item_is_made_for_the_writer_a_run_of_rows_at_a_time(registry, scene) -> None:
+    from gdt_pipeline.twin_elements import composite_to_elements
+    from twin_store import RowsOnDemand, whole
+    from twin_store.elements import PER_ELEMENT
+
+    reference, precise, change = scene
+    comp, _ = _run(registry, "most_reliable", reference, [precise], [change])
+    kinds = []
+    for source in composite_to_elements(comp):
+        es = whole(source)
+        kinds.append((es.kind, isinstance(source, RowsOnDemand)))
+        if es.kind == "mesh":
+            continue
+        # a middle run of rows is the whole set's rows, field by field (covariances packed from the rows' own)
+        start, stop = es.n_elements // 3, 2 * es.n_elements // 3
+        part = source.rows(start, stop)
+        assert part.n_elements == stop - start and part.key == es.key
+        for name in PER_ELEMENT:
+            if getattr(es, name) is None:
+                assert getattr(part, name) is None, name
+            else:
+                np.testing.assert_array_equal(getattr(part, name), np.asarray(getattr(es, name))[start:stop], name)
+    assert sorted(set(kinds)) == [("mesh", False), ("points", True)]
+
+
 def _bracket_scan(sweep: bool) -> tuple[np.ndarray, np.ndarray]:
     """Structured-light points on one new bracket of the fuselage scene: from the six overview stations, or with the
     handheld sweep along its web; and the bracket's solid centre."""

@@ -15,7 +15,7 @@ from pxr import Sdf, Usd, UsdGeom
 
 import twin_store.parts as parts
 import twin_store.payloads as payloads
-from twin_store import STATE_COLORS, ElementSet, TwinStore, TwinStoreError
+from twin_store import STATE_COLORS, ElementSet, RowsOnDemand, TwinStore, TwinStoreError
 from twin_store.elements import define_element_set
 
 from .test_twin_store import mesh_set, points_set
@@ -208,3 +208,41 @@ def test_writing_a_large_set_holds_one_part_at_a_time(tmp_path: Path, monkeypatc
     store = TwinStore.create(tmp_path / "twin")
     store.write_epoch("E0", [points_set()], {"epoch": "E0"})
     assert alive == [0, 0, 0, 0]
+
+
+def _rows_on_demand(es: ElementSet, asked: list[tuple[int, int]]) -> RowsOnDemand:
+    """``es`` as the engine hands a point set to the writer: rows made on request, each request recorded."""
+    def make(start: int, stop: int) -> ElementSet:
+        asked.append((start, stop))
+        rows = {name: np.asarray(getattr(es, name))[start:stop] for name in parts.PER_ELEMENT
+                if getattr(es, name) is not None}
+        return dataclasses.replace(es, **rows)
+
+    return RowsOnDemand(key=es.key, points=es.points, state=es.state, visible=es.visible, identity=es.identity,
+                        item=es.item, make=make)
+
+
+def _files(twin: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted((twin / "epochs").iterdir())}
+
+
+def test_a_set_made_part_by_part_writes_the_twin_the_whole_set_writes(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(payloads, "PAYLOAD_ELEMENTS", 100)
+    monkeypatch.setattr(parts, "PART_ELEMENTS", 64)
+    state = np.zeros(200, np.uint8)
+    state[130:140] = 2
+    epochs = {"E0": [points_set()], "E1": [points_set(state=state, visible=np.arange(200) < 190)]}
+    asked: list[tuple[int, int]] = []
+    for name, source in (("whole", lambda es: es), ("rows", lambda es: _rows_on_demand(es, asked))):
+        store = TwinStore.create(tmp_path / name)
+        for eid, sets in epochs.items():
+            store.write_epoch(eid, [source(es) for es in sets], {"epoch": eid})
+    # the writer asked for one part's rows at a time, never the whole set: four parts written, four compared
+    assert asked == [(0, 64), (64, 128), (128, 192), (192, 200)] * 2
+    assert _files(tmp_path / "rows") == _files(tmp_path / "whole")
+    # a set small enough for one prim is made whole, once
+    monkeypatch.setattr(payloads, "PAYLOAD_ELEMENTS", 1000)
+    asked.clear()
+    TwinStore.create(tmp_path / "small").write_epoch("E0", [_rows_on_demand(points_set(), asked)], {})
+    assert asked == [(0, 200)]

@@ -17,7 +17,7 @@ from .lock import lock_path, writer_lock
 from .names import REASON_NAMES, RUN_LOCK_NAME, STATE_COLORS, STATE_NAMES, state_colours
 from .payloads import preview_rows
 from .segments import Segment
-from .set_source import SetsOnDemand, set_keys
+from .set_source import RowsOnDemand, SetsOnDemand, set_keys, whole
 from .store import TwinStore
 from .swap import partial_path, recover_leftovers, swap_into_place
 
@@ -30,6 +30,7 @@ __all__ = [
     "ElementSet",
     "EpochEntry",
     "LeanSet",
+    "RowsOnDemand",
     "Segment",
     "SetDiff",
     "SetsOnDemand",
@@ -46,5 +47,6 @@ __all__ = [
     "sha256_file",
     "state_colours",
     "swap_into_place",
+    "whole",
     "writer_lock",
 ]

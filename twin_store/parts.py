@@ -34,6 +34,7 @@ from .elements import (
     uncertainty_model_of,
 )
 from .errors import TwinStoreError
+from .set_source import RowsOnDemand, SetLike
 
 PART_ELEMENTS = 1_000_000
 PARTS_KEY = "gdt:parts"
@@ -75,16 +76,22 @@ def part_prims(prim: Usd.Prim) -> list[Usd.Prim]:
     return found
 
 
-def rows_of(es: ElementSet, start: int, stop: int) -> ElementSet:
+def rows_of(es: SetLike, start: int, stop: int) -> ElementSet:
     """Rows [start, stop) of a point set as a set of their own: the same key, ids numbered as in the whole set,
-    no identity or item (those are the whole set's)."""
-    rows = {name: np.asarray(getattr(es, name))[start:stop] for name in PER_ELEMENT if getattr(es, name) is not None}
-    if es.ids is None:
-        rows["ids"] = np.arange(start, stop, dtype=np.int64)
-    return dataclasses.replace(es, identity=None, item=None, **rows)
+    no identity or item (those are the whole set's); a ``RowsOnDemand`` makes only those rows."""
+    if isinstance(es, RowsOnDemand):
+        part = es.rows(start, stop)
+        rows = {} if part.ids is not None else {"ids": np.arange(start, stop, dtype=np.int64)}
+    else:
+        part = es
+        rows = {name: np.asarray(getattr(es, name))[start:stop] for name in PER_ELEMENT
+                if getattr(es, name) is not None}
+        if es.ids is None:
+            rows["ids"] = np.arange(start, stop, dtype=np.int64)
+    return dataclasses.replace(part, identity=None, item=None, **rows)
 
 
-def override_parted_set(prim: Usd.Prim, es: ElementSet, epoch_id: str) -> None:
+def override_parted_set(prim: Usd.Prim, es: SetLike, epoch_id: str) -> None:
     """Author on the stage's edit target the values of a known parted set that differ from what is stored, part
     by part (an unchanged part gets no opinion), and the set's visibility."""
     n, size = parts_info(prim)

@@ -19,9 +19,10 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from . import parts
-from .elements import ElementSet, define_element_set, point_widths, same_values, set_frame
+from .elements import define_element_set, point_widths, same_values, set_frame
 from .layers import export_atomic
 from .names import IDENTITY_KEY, ITEM_KEY, TWIN_PRIM, state_colours
+from .set_source import SetLike
 
 PAYLOAD_ELEMENTS = 2_000_000
 PREVIEW_POINTS = 200_000
@@ -33,12 +34,12 @@ def payload_file(epoch_id: str, key: str, part: str) -> str:
     return f"{epoch_id}.{key}.{part}.usdc"
 
 
-def wants_payload(es: ElementSet, limit: int | None = None) -> bool:
+def wants_payload(es: SetLike, limit: int | None = None) -> bool:
     """Whether a new set goes into its own payload layer."""
     return es.kind == "points" and len(es.points) > (PAYLOAD_ELEMENTS if limit is None else limit)
 
 
-def define_payload_set(stage: Usd.Stage, es: ElementSet, folder: Path, epoch_id: str) -> list[tuple[str, str]]:
+def define_payload_set(stage: Usd.Stage, es: SetLike, folder: Path, epoch_id: str) -> list[tuple[str, str]]:
     """Author ``es`` in parts, each in its own layer file in ``folder`` with a payload arc to it, and its preview,
     on ``stage``'s edit target; return the files' names and sha256s."""
     path = f"{TWIN_PRIM}/{es.key}"
@@ -86,11 +87,11 @@ def preview_rows(n: int) -> np.ndarray:
     return np.arange(0, n, max(1, -(-n // PREVIEW_POINTS)))
 
 
-def _colours(es: ElementSet, rows: np.ndarray) -> np.ndarray:
+def _colours(es: SetLike, rows: np.ndarray) -> np.ndarray:
     return state_colours(np.asarray(es.state)[rows]).astype(np.float32)
 
 
-def define_preview(stage: Usd.Stage, es: ElementSet) -> None:
+def define_preview(stage: Usd.Stage, es: SetLike) -> None:
     """``/Previews/<key>``: every k-th point of the set, coloured by state, hidden ones zero-wide."""
     rows = preview_rows(len(es.points))
     pts = np.asarray(es.points, dtype=np.float64)[rows]
@@ -105,7 +106,7 @@ def define_preview(stage: Usd.Stage, es: ElementSet) -> None:
                                     f"{TWIN_PRIM}/{es.key}, for viewers that leave payloads unloaded")
 
 
-def restate_preview(stage: Usd.Stage, es: ElementSet) -> None:
+def restate_preview(stage: Usd.Stage, es: SetLike) -> None:
     """A later epoch's states and visibility on the set's preview, where they changed."""
     prim = stage.GetPrimAtPath(f"{PREVIEWS_PRIM}/{es.key}")
     if not prim:

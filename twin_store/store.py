@@ -36,7 +36,7 @@ from .names import EPOCH_DIR, REASON_NAMES, ROOT_NAME, STATE_NAMES, TWIN_PRIM
 from .parts import is_parted, override_parted_set, read_set, set_values
 from .payloads import define_payload_set, relative_payloads, restate_preview, wants_payload
 from .segments import Segment
-from .set_source import set_keys
+from .set_source import SetLike, set_keys, whole
 from .swap import leftover_advice, leftovers
 
 
@@ -172,7 +172,7 @@ class TwinStore:
     # ----------------------------------------------------------------------------------------------------------------
     # Writing an epoch
 
-    def write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict,
+    def write_epoch(self, epoch_id: str, elements: Sequence[SetLike], provenance: dict,
                     region_of_view: tuple[np.ndarray, np.ndarray] | None = None,
                     segments: Sequence[Segment] = ()) -> Path:
         """Write one epoch layer holding the composite after this epoch (and the region of view its sensors
@@ -180,7 +180,7 @@ class TwinStore:
         with self.writing():
             return self._write_epoch(epoch_id, elements, provenance, region_of_view, segments)
 
-    def _write_epoch(self, epoch_id: str, elements: Sequence[ElementSet], provenance: dict,
+    def _write_epoch(self, epoch_id: str, elements: Sequence[SetLike], provenance: dict,
                      region_of_view: tuple[np.ndarray, np.ndarray] | None = None,
                      segments: Sequence[Segment] = ()) -> Path:
         existing = self._check_new_epoch(epoch_id, elements)
@@ -215,7 +215,7 @@ class TwinStore:
         export_atomic(new_root, self.root_path, ("root-exported", "root-written"))
         return target
 
-    def _check_new_epoch(self, epoch_id: str, elements: Sequence[ElementSet]) -> list[str]:
+    def _check_new_epoch(self, epoch_id: str, elements: Sequence[SetLike]) -> list[str]:
         """The twin's epochs so far, after checking ``epoch_id`` and the set keys can be written."""
         if not Tf.IsValidIdentifier(epoch_id):
             raise TwinStoreError(f"epoch id {epoch_id!r} is not a valid identifier")
@@ -227,7 +227,7 @@ class TwinStore:
             raise TwinStoreError(f"epoch {epoch_id}: duplicate element set keys")
         return existing
 
-    def _author_elements(self, stage: Usd.Stage, epoch_id: str, elements: Sequence[ElementSet]
+    def _author_elements(self, stage: Usd.Stage, epoch_id: str, elements: Sequence[SetLike]
                          ) -> list[tuple[str, str]]:
         """Define the new sets and override the known ones; every known set must be restated. Large point sets go
         into payload layers of their own (``payloads``): their file names and sha256s are returned."""
@@ -243,13 +243,15 @@ class TwinStore:
         written = []
         for es in elements:
             if es.key in known:
-                override = override_parted_set if is_parted(known[es.key]) else override_element_set
-                override(known[es.key], es, epoch_id)
+                if is_parted(known[es.key]):
+                    override_parted_set(known[es.key], es, epoch_id)
+                else:
+                    override_element_set(known[es.key], whole(es), epoch_id)
                 restate_preview(stage, es)
             elif wants_payload(es):
                 written += define_payload_set(stage, es, self._path / EPOCH_DIR, epoch_id)
             else:
-                define_element_set(stage, es)
+                define_element_set(stage, whole(es))
         return written
 
     # ----------------------------------------------------------------------------------------------------------------

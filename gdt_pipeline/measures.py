@@ -35,6 +35,7 @@ from pydantic import BaseModel
 from .compiled import njit
 from .coverage import ReferenceCoverage
 from .geometry import sample_surface
+from .pair_counts import counted_sources
 from .plugins import FAMILY_SLOTS, StageContext, StageSpec, family_stage
 from .types import Composite, Correspondences, Dataset, Scores, Uncertainty
 from .types.arrays import index_dtype
@@ -79,6 +80,11 @@ class PairGroup:
     ref_elements: np.ndarray
     normal: np.ndarray | None = None  # local surface normal per pair, for tests along the normal
 
+    @property
+    def size(self) -> int:
+        """Number of pairs."""
+        return len(self.idx)
+
     def subset(self, sel: np.ndarray, mu_q: np.ndarray | None = None, mu_r: np.ndarray | None = None) -> PairGroup:
         """The pairs ``sel`` of this group, optionally with other means (simulated ones)."""
         return PairGroup(self.idx[sel], self.elements[sel], self.mu_q[sel] if mu_q is None else mu_q,
@@ -104,6 +110,11 @@ class PairSource:
     ref_element: np.ndarray
     query_per_candidate: bool  # query_position holds one row per candidate (else one per query element)
     u_q_per_candidate: bool = False  # u_q holds one row per candidate (a neighbourhood expectation's)
+
+    @property
+    def size(self) -> int:
+        """Number of pairs."""
+        return len(self.idx)
 
     def subset(self, sel: np.ndarray, mu_q: np.ndarray | None = None, mu_r: np.ndarray | None = None) -> PairGroup:
         """The pairs ``sel`` (positions in ``idx``) as a ``PairGroup``, optionally with other means."""
@@ -191,7 +202,7 @@ class NullSimulation:
 
     def __init__(self, groups: list[PairGroup] | list[PairSource], measure: PairMeasure) -> None:
         self.groups, self.measure = groups, measure
-        self.sizes = np.array([len(g.idx) for g in groups])
+        self.sizes = np.array([g.size for g in groups])
 
     @property
     def models(self) -> list[str]:
@@ -330,9 +341,11 @@ def attach_null_simulators(ctx: StageContext, measure: PairMeasure, prepare: Pre
     cover = ReferenceCoverage(ctx["reference"])
     for s in ctx["scores"]:
         ds = ctx["recent"][s.query]
-        sources: list[Any] = pair_sources(ds, by_query[s.query], ctx["reference"])
-        if prepare is not None:
-            sources = prepare([src.whole() for src in sources], s.query)
+        # counted, not indexed: the merged candidates' columns may be maps of a scratch file (the same pairs drawn)
+        sources: list[Any] = counted_sources(ds, by_query[s.query], ctx["reference"])
+        if prepare is not None:  # prepared groups (local normals) are every pair's copies anyway
+            sources = prepare([src.whole() for src in pair_sources(ds, by_query[s.query], ctx["reference"])],
+                              s.query)
         out.append(dataclasses.replace(s, simulate=null_simulator(sources, measure),
                                        covered=unmatched_coverage(ctx, ds, s.score, cover)))
     return {"scores": out}

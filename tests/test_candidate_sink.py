@@ -68,7 +68,7 @@ def test_candidates_merged_on_disk_equal_those_merged_in_memory(kind: str, tmp_p
         assert np.array_equal(a, b)
     for name in ("element", "ref_item", "ref_element", "ref_row", "position", "distance", "query_position"):
         assert np.array_equal(getattr(merged, name), getattr(in_memory, name)), name
-    for name in ("position", "distance", "query_position"):
+    for name in ("element", "ref_item", "ref_element", "ref_row", "position", "distance", "query_position"):
         assert isinstance(getattr(merged, name), MappedRows), name
     u, v = merged.query_uncertainty, in_memory.query_uncertainty
     m = len(in_memory.ref_item)
@@ -114,10 +114,10 @@ def test_candidate_places_are_those_of_a_stable_sort(layout: str) -> None:
     assert np.array_equal(np.concatenate(places), stable)
 
 
-def test_the_merge_holds_one_column_beside_the_merged_ones(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Traced by numpy's allocations: the merge takes each narrow column's parts as it builds the merged column, and
-    the merged candidates hold those columns as they are (a copy of each, or a sort of all candidates, was 32 B a
-    candidate on top of 24 B held)."""
+def test_the_sink_holds_no_column_of_its_candidates(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Traced by numpy's allocations: the tiles' candidates wait on disk, narrow columns too (they were 12 B a
+    candidate in memory), and the merge holds where each candidate goes (4 B a candidate) and one tile's column
+    at a time; the merged candidates are maps of the merged file."""
     monkeypatch.setattr(candidate_sink, "GATHER_ROWS", 1024)
     rng = np.random.default_rng(4)
     n, tiles = 100_000, 8
@@ -125,21 +125,27 @@ def test_the_merge_holds_one_column_beside_the_merged_ones(tmp_path: Path, monke
     tracemalloc.start()
     try:
         with CandidateSink(folder=tmp_path) as sink:
+            before, _ = tracemalloc.get_traced_memory()
             for t in range(tiles):
                 e = np.repeat(np.flatnonzero(tile_of == t), 2)
                 sink.absorb(t, [Correspondences(0, np.zeros(len(e)), np.arange(len(e)), np.zeros((len(e), 3)),
                                                 np.zeros(len(e)), "test", element=e, n_elements=n)])
+            del e
             m = 2 * n
             held, _ = tracemalloc.get_traced_memory()
             tracemalloc.reset_peak()
-            merged, _ = sink.merged(0, list(range(tiles)), n)
+            merged, where = sink.merged(0, list(range(tiles)), n)
             _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
-    assert held >= 12 * m  # element, ref_item and ref_element of every candidate, int32
-    assert peak - held <= 12 * m
+    assert held - before < 4096 * tiles  # the tiles' records, none of their columns (12 B a candidate: 2.4 MB)
+    # where each candidate goes, the elements' counts and first places, and one tile's column and its runs
+    assert peak - held <= 4 * m + 8 * n + 24 * m / tiles
     assert merged.element.dtype == merged.ref_item.dtype == merged.ref_element.dtype == np.int32
+    for name in ("element", "ref_item", "ref_element"):
+        assert isinstance(getattr(merged, name), MappedRows), name
     assert np.array_equal(merged.element, np.repeat(np.arange(n), 2))
+    assert sum(len(w) for w in where) == m
 
 
 def test_a_full_scratch_disk_names_the_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -37,13 +37,13 @@ from ..tiling import (
     members_of,
     merge_change,
     merge_correspondences,
-    merge_scores,
     size_for_budget,
     take_candidates,
     take_dataset,
 )
 from ..tiling.crop import take_change, take_scores
 from ..tiling.merge import RecentSink
+from ..tiling.score_sink import ScoreSink
 from ..types import Composite, CompositeItem, Dataset
 from .halos import StageReach, stage_reaches, tile_reaches
 from .plan import StagePlan, TilingOptions
@@ -229,9 +229,11 @@ def _finish_correspondences(task: TileTask) -> TileTask:
 
 
 def _merge(slots: dict[str, Any], members: dict[int, list[np.ndarray]], results: list[TileResult],
-           provides: set[str], sink: RecentSink, candidates: CandidateSink | None) -> dict[str, Any]:
+           provides: set[str], sink: RecentSink, candidates: CandidateSink | None, scores: ScoreSink
+           ) -> dict[str, Any]:
     """The tiles' core results merged into whole-epoch slots (``sink``: the uncertainty merged as tiles finished;
-    ``candidates``: their candidates, when kept on disk as they finished)."""
+    ``candidates``: their candidates, when kept on disk as they finished; ``scores``: their scores, put in place as
+    they finished)."""
     recent: list[Dataset] = slots["recent"]
     tiles = [r.tile for r in results]
     orders = [ElementOrder.check(ds.name, [members[t][d] for t in tiles], ds.n_elements)
@@ -255,7 +257,7 @@ def _merge(slots: dict[str, Any], members: dict[int, list[np.ndarray]], results:
             merged.append(corr)
         out["correspondences"] = merged
     if "scores" in provides:
-        out["scores"] = [merge_scores([r.slots["scores"][d] for r in results], orders[d], maps.get(d))
+        out["scores"] = [scores.merged(d, tiles, [members[t][d] for t in tiles], maps.get(d))
                          for d in range(len(recent))]
     if "change" in provides:
         out["change"] = [merge_change([r.slots["change"][d] for r in results], orders[d]) for d in range(len(recent))]
@@ -284,7 +286,9 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
     log.info("tiles: %d of %.4g with halos of %.4g to %.4g for %s", len(cutter.members), cutter.size,
              min(halos, default=0.0), max(halos, default=0.0), ", ".join(st.spec.name for st in stages))
     provides = {s for st in stages for s in st.spec.provides}
-    sink = RecentSink([ds.n_elements for ds in slots["recent"]], scratch_folder() if session.options.spill else None)
+    sizes = [ds.n_elements for ds in slots["recent"]]
+    sink = RecentSink(sizes, scratch_folder() if session.options.spill else None)
+    scores = ScoreSink(sizes)
     spill = "correspondences" in provides and session.options.spill
     with CandidateSink() if spill else contextlib.nullcontext() as candidates:
 
@@ -293,12 +297,14 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
                 sink.absorb(result.slots["recent"], cutter.members[result.tile])
             if candidates is not None:
                 candidates.absorb(result.tile, result.slots["correspondences"])
+            if "scores" in provides:
+                scores.absorb(result.tile, result.slots["scores"], cutter.members[result.tile])
 
         with progress_task(len(cutter.members)) as advance:
             results = _run_rounds(cutter, list(cutter.members), executor, fn, stages, seed, threads, advance,
                                   finished)
         ordered = [results[t] for t in cutter.members]
-        slots.update(_merge(slots, cutter.members, ordered, provides, sink, candidates))
+        slots.update(_merge(slots, cutter.members, ordered, provides, sink, candidates, scores))
     _finish(stages, slots, seed)
     widened = sum(1 for r in ordered if r.halo > cutter.halo(r.tile))
     return _outcome(stages, ordered, cutter, session, widened)

@@ -1,12 +1,13 @@
 """The tiles' candidates kept on disk as tiles finish, and merged into element order on disk (``docs/scale.md``).
 
-A candidate's wide columns (the matched position, the query position, the distance and, with the pooled
-expectation, the query's covariance: 128 B of the 160 B a candidate holds) are read again only by the null
-simulation, which draws 10⁵ pairs, and by whoever takes a subset. So the process running the tiles writes each
-tile's wide columns to an unnamed scratch file as the tile finishes and keeps only the narrow ones (items, elements,
-rows: 24–32 B a candidate). The merge gathers the wide columns into element order in a second scratch file, piece by
-piece, and hands them on as read-only maps of it (``MappedRows``): the merged ``Correspondences`` are the same,
-value for value, as the ones merged in memory, and the epoch's candidates never sit in the process whole.
+A candidate's columns (the matched position, the query position, the distance and, with the pooled expectation,
+the query's covariance: 128 B; and the narrow ones, its element, reference item, element and row: 12–16 B) are
+read again only by the null simulation, which draws 10⁵ pairs, by the fusion when it has no region of view (the
+winning candidates), and by whoever takes a subset. So the process running the tiles writes each tile's columns to
+an unnamed scratch file as the tile finishes and keeps only what is not one row a candidate (the reference models
+of the candidates that carry one, scalars). The merge gathers the columns into element order in a second scratch
+file, piece by piece, and hands them on as read-only maps of it (``MappedRows``): the merged ``Correspondences`` are
+the same, value for value, as the ones merged in memory, and the epoch's candidates never sit in the process whole.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
-from typing import IO, Any
+from typing import IO, Any, overload
 
 import numpy as np
 
@@ -26,9 +27,15 @@ from ..scratch import read_at, scratch_file, scratch_folder, write_at
 from ..types import Correspondences, GaussianUncertainty, MappedRows
 from ..types.arrays import index_dtype
 from ..types.correspondences import field_parts, scatter_rows
+from ..types.uncertainty import concat_uncertainty
 
 # Per-candidate arrays written to disk; the query's per-candidate Gaussian covariances go too ("query_cov").
 WIDE_FIELDS = ("position", "query_position", "distance")
+# the narrow ones: indices, read back a tile at a time to place the candidates
+NARROW_FIELDS = ("element", "ref_item", "ref_element", "ref_row")
+SPILLED = (*NARROW_FIELDS, *WIDE_FIELDS)
+# ``ref_row`` of a tile whose candidates carry no model of their own: none (−1), as ``field_parts`` joins them
+NO_ROW = -1
 QUERY_COV = "query_cov"
 # Merged candidates gathered and written at a time: 2¹⁸ rows of the widest column (a covariance) are 19 MB.
 GATHER_ROWS = 1 << 18
@@ -92,7 +99,7 @@ class CandidateSink:
         """Dataset ``d``'s candidates of ``tiles`` in element order, and per tile where each of its candidates
         went (as ``merge_correspondences``)."""
         held = [self.held[d].pop(t) for t in tiles]
-        maps = candidate_places([h.narrow.element for h in held])
+        maps = candidate_places(_TileColumn(self, held, "element"))
         for t, places in zip(tiles, maps, strict=True):
             if np.any(places[1:] <= places[:-1]):  # the gather reads each tile's candidates in runs
                 raise GdtError(f"tile {t}: the candidates of dataset {d} are not in element order")
@@ -103,21 +110,24 @@ class CandidateSink:
         self._spill_small_models(held)
         if not _one_gaussian(held):
             self._query_models_back(held)
-        columns = field_parts([h.narrow for h in held], kind, values)
+        values.update(self._on_disk(held, maps, total))
+        columns = field_parts([h.narrow for h in held], kind, values, [h.size for h in held])
         for h in held:  # each column's parts are then held by ``columns`` alone, and go as the column is merged
             h.narrow = SimpleNamespace()
         for name, parts in columns.items():
             values[name] = scatter_rows(parts, maps, total)
             return_freed_memory()  # this column's parts, before the next column is made
         del columns
-        values.update(self._wide(held, maps, total))
+        if not held:
+            values.update(ref_item=np.zeros(0, np.int32), ref_element=np.zeros(0, np.int32),
+                          position=np.zeros((0, 3)), distance=np.zeros(0), element=np.zeros(0, np.int32))
         return_freed_memory()
         return kind(**values), maps
 
     def _hold(self, corr: Correspondences) -> _Held:
         columns: dict[str, _Column] = {}
         narrow = {f.name: getattr(corr, f.name) for f in dataclasses.fields(corr)}
-        for name in WIDE_FIELDS:
+        for name in SPILLED:
             if narrow[name] is not None:
                 columns[name] = self._write(np.ascontiguousarray(narrow[name]))
                 narrow[name] = None
@@ -144,16 +154,24 @@ class CandidateSink:
         return read_at(self._file, column.dtype, (stop - start, *column.row_shape),
                        column.offset + column.row_bytes * start)
 
-    def _wide(self, held: list[_Held], maps: list[np.ndarray], total: int) -> dict[str, Any]:
-        """The wide fields of the merged candidates: read-only maps of a scratch file in element order."""
-        names = sorted({name for h in held for name in h.columns})
+    def _column(self, h: _Held, name: str) -> np.ndarray:
+        """One tile's column, read back whole."""
+        return self._read(h.columns[name], 0, h.size)
+
+    def _on_disk(self, held: list[_Held], maps: list[np.ndarray], total: int) -> dict[str, Any]:
+        """The merged candidates' spilled fields: read-only maps of a scratch file in element order (and the
+        reference models the merged ``ref_row`` indexes)."""
+        names = [name for name in (*SPILLED, QUERY_COV) if any(name in h.columns for h in held)]
         for name in names:
-            if any(name not in h.columns for h in held):
+            if name != "ref_row" and any(name not in h.columns for h in held):
                 raise GdtError(f"tiles disagree on whether candidates carry {name!r}")
-        if not names:
-            return {}
-        merged_file = scratch_file(self.folder, "gdt-candidates-merged-")
         out: dict[str, Any] = {}
+        if "ref_row" in names:
+            models = [h.narrow.ref_uncertainty for h in held if h.narrow.ref_uncertainty is not None]
+            out["ref_uncertainty"] = concat_uncertainty(models, [m.rows for m in models])
+        if not names:
+            return out
+        merged_file = scratch_file(self.folder, "gdt-candidates-merged-")
         # per tile, the run of its candidates that lands in each piece of GATHER_ROWS merged rows (one search for
         # all columns)
         edges = np.minimum(np.arange(0, total + GATHER_ROWS, GATHER_ROWS), total)
@@ -161,10 +179,14 @@ class CandidateSink:
         try:
             offset = 0
             for name in names:
-                first = held[0].columns[name]
-                self._gather(merged_file, offset, [h.columns[name] for h in held], maps, runs, total)
-                mapped = _mapped(merged_file, offset, first.dtype, (total, *first.row_shape))
-                offset += first.row_bytes * total
+                dtype, row_shape = _merged_type([h.columns.get(name) for h in held])
+                if name == "ref_row":  # rows into the joined models: as many as all tiles' models hold
+                    dtype = np.dtype(np.result_type(dtype, index_dtype(out["ref_uncertainty"].rows)))
+                self._gather(merged_file, offset, [_Source(h.columns.get(name), shift) for h, shift in
+                                                   zip(held, _row_shifts(held, name), strict=True)],
+                             dtype, row_shape, maps, runs, total)
+                mapped = _mapped(merged_file, offset, dtype, (total, *row_shape))
+                offset += int(dtype.itemsize * np.prod(row_shape, dtype=np.int64)) * total
                 if name == QUERY_COV:
                     out["query_uncertainty"] = GaussianUncertainty.trusted(mapped, held[0].query_dof)
                 else:
@@ -173,19 +195,19 @@ class CandidateSink:
             merged_file.close()  # the maps keep the file (each holds its own descriptor)
         return out
 
-    def _gather(self, into: IO[bytes], offset: int, columns: list[_Column], maps: list[np.ndarray],
-                runs: list[np.ndarray], total: int) -> None:
-        """One wide column of every tile written into ``into`` at ``offset`` in element order, a piece at a time:
-        piece k takes, from every tile, the contiguous run ``runs[tile][k]:runs[tile][k + 1]`` of its candidates."""
-        first = columns[0]
+    def _gather(self, into: IO[bytes], offset: int, sources: list[_Source], dtype: np.dtype,
+                row_shape: tuple[int, ...], maps: list[np.ndarray], runs: list[np.ndarray], total: int) -> None:
+        """One column of every tile written into ``into`` at ``offset`` in element order, a piece at a time: piece
+        k takes, from every tile, the contiguous run ``runs[tile][k]:runs[tile][k + 1]`` of its candidates."""
+        row_bytes = int(dtype.itemsize * np.prod(row_shape, dtype=np.int64))
         for k, start in enumerate(range(0, total, GATHER_ROWS)):
             stop = min(total, start + GATHER_ROWS)
-            piece = np.empty((stop - start, *first.row_shape), dtype=first.dtype)
-            for column, places, run in zip(columns, maps, runs, strict=True):
+            piece = np.empty((stop - start, *row_shape), dtype=dtype)
+            for source, places, run in zip(sources, maps, runs, strict=True):
                 lo, hi = run[k], run[k + 1]
                 if hi > lo:
-                    piece[places[lo:hi] - start] = self._read(column, int(lo), int(hi))
-            self._put(into, piece, offset + first.row_bytes * start)
+                    piece[places[lo:hi] - start] = source.rows(self, int(lo), int(hi))
+            self._put(into, piece, offset + row_bytes * start)
 
     def _spill_small_models(self, held: list[_Held]) -> None:
         """The query models of tiles with at most one candidate (``_hold`` spills per-candidate rows only) written to
@@ -216,6 +238,66 @@ class CandidateSink:
                 cov = self._read(h.columns.pop(QUERY_COV), 0, h.size).copy()
                 cov.setflags(write=False)
                 h.narrow.query_uncertainty = GaussianUncertainty.trusted(cov, h.query_dof)
+
+
+@dataclass(frozen=True)
+class _Source:
+    """Where one tile's rows of a merged column come from: its column in the arrival file, its rows shifted by
+    ``shift`` where they are ≥ 0 (a ``ref_row`` into the joined models); no column: rows of ``NO_ROW``."""
+
+    column: _Column | None
+    shift: int = 0
+
+    def rows(self, sink: CandidateSink, start: int, stop: int) -> np.ndarray:
+        if self.column is None:
+            return np.full(stop - start, NO_ROW)
+        values = sink._read(self.column, start, stop)
+        return np.where(values >= 0, values + np.int64(self.shift), NO_ROW) if self.shift else values
+
+
+def _row_shifts(held: list[_Held], name: str) -> list[int]:
+    """Per tile, what its rows of column ``name`` are shifted by: for ``ref_row``, the rows of the earlier tiles'
+    models (their models joined in tile order, as ``field_parts`` joins them)."""
+    if name != "ref_row":
+        return [0] * len(held)
+    shifts, rows = [], 0
+    for h in held:
+        shifts.append(rows)
+        if h.narrow.ref_uncertainty is not None:
+            rows += h.narrow.ref_uncertainty.rows
+    return shifts
+
+
+def _merged_type(columns: list[_Column | None]) -> tuple[np.dtype, tuple[int, ...]]:
+    """The dtype and row shape of a merged column: the tiles' types promoted (an int64 index in one tile keeps its
+    values)."""
+    present = [c for c in columns if c is not None]
+    dtype = np.result_type(*[c.dtype for c in present])
+    if any(c is None for c in columns):
+        dtype = np.result_type(dtype, np.int32)
+    return np.dtype(dtype), present[0].row_shape
+
+
+class _TileColumn(Sequence[np.ndarray]):
+    """One column of each tile, read back from the arrival file when asked for (a pass over the tiles holds one
+    tile's)."""
+
+    def __init__(self, sink: CandidateSink, held: list[_Held], name: str) -> None:
+        self.sink, self.held, self.name = sink, held, name
+
+    def __len__(self) -> int:
+        return len(self.held)
+
+    @overload
+    def __getitem__(self, i: int) -> np.ndarray: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[np.ndarray]: ...
+
+    def __getitem__(self, i: int | slice) -> np.ndarray | list[np.ndarray]:
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        return self.sink._column(self.held[i], self.name)
 
 
 def _one_gaussian(held: list[_Held]) -> bool:

@@ -178,36 +178,6 @@ def _p_values(pieces: Sequence[Scores] | Sequence[Change], order: ElementOrder) 
     return np.concatenate(parts)[order.position]
 
 
-def merge_scores(pieces: Sequence[Scores], order: ElementOrder, candidate_maps: list[np.ndarray] | None) -> Scores:
-    """The tiles' core scores in element order; winning candidates renumbered through ``candidate_maps`` (per tile,
-    tile candidate → merged candidate) when the correspondences were merged too."""
-    first = pieces[0]
-    match = None
-    if first.match is not None:
-        parts = []
-        for i, p in enumerate(pieces):
-            m = p.match
-            if candidate_maps is not None:
-                won = m >= 0
-                m = np.full(len(m), -1, dtype=candidate_maps[i].dtype)
-                m[won] = candidate_maps[i][p.match[won]]
-            parts.append(m)
-        match = np.concatenate(parts)[order.position]
-    p_value = _p_values(pieces, order)
-    tolerances = [p.tolerance for p in pieces if p.tolerance is not None]
-    return Scores(query=first.query, score=np.concatenate([p.score for p in pieces])[order.position],
-                  measure=first.measure, p_value=p_value, tolerance=max(tolerances) if tolerances else None,
-                  match=match, covered=_covered(pieces, order))
-
-
-def _covered(pieces: Sequence[Scores], order: ElementOrder) -> np.ndarray | None:
-    """The tiles' coverage in element order (a tile that computed none was covered everywhere)."""
-    if all(p.covered is None for p in pieces):
-        return None
-    parts = [np.ones(len(p.score), bool) if p.covered is None else p.covered for p in pieces]
-    return np.concatenate(parts)[order.position]
-
-
 def merge_change(pieces: Sequence[Change], order: ElementOrder) -> Change:
     """The tiles' core change in element order (the threshold is the one every tile used)."""
     first = pieces[0]

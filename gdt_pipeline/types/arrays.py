@@ -81,6 +81,15 @@ def by_pieces(rows: np.ndarray, per_rows: Callable[[np.ndarray], np.ndarray]) ->
     return out
 
 
+def rows_copy(rows: np.ndarray, start: int, stop: int) -> np.ndarray:
+    """Rows [start, stop) as an array of their own; of a ``MappedRows``, the pages read are let go after the copy."""
+    out = np.array(rows[start:stop])
+    pages = getattr(rows, "_mmap", None) if isinstance(rows, MappedRows) else None
+    if pages is not None:
+        release_pages(pages)
+    return out
+
+
 def _row_selection(index: Any, n: int) -> np.ndarray | None:
     """The rows a first-axis selection by an integer or boolean array takes (None for any other index)."""
     if not isinstance(index, np.ndarray) or index.ndim != 1:

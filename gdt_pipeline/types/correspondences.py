@@ -148,11 +148,12 @@ class Correspondences:
         return kind(**values)
 
 
-def field_parts(pieces: Sequence[Correspondences], kind: type, values: dict[str, Any]) -> dict[str, list[Any]]:
+def field_parts(pieces: Sequence[Any], kind: type, values: dict[str, Any], sizes: Sequence[int] | None = None
+                ) -> dict[str, list[Any]]:
     """Per per-candidate field that some piece carries (and ``values`` does not hold yet), each piece's part; row
     indices offset into the pieces' joined row model, which goes into ``values``. An error when pieces disagree on
-    whether they carry a field."""
-    sizes = [len(p.ref_item) for p in pieces]
+    whether they carry a field. ``sizes``: the pieces' candidates, where their ``ref_item`` is not at hand."""
+    sizes = [len(p.ref_item) for p in pieces] if sizes is None else list(sizes)
     out: dict[str, list[Any]] = {}
     for f in dataclasses.fields(kind):
         if f.name in values or not _per_candidate(f):

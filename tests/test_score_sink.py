@@ -1,0 +1,73 @@
+"""The tiles' core scores put in place as tiles finish (``tiling.score_sink``): every element's score, p-value,
+coverage and winning candidate is its tile's, whatever order the tiles finish in; a tile without p-values gives
+NaN, one without coverage is covered; the winning candidates are renumbered into the merged candidates' order;
+and the pieces are let go as they are absorbed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gdt_pipeline import GdtError, Scores
+from gdt_pipeline.tiling.score_sink import ScoreSink
+
+N, TILES = 1000, 6
+
+
+def _pieces(rng: np.random.Generator) -> tuple[list[np.ndarray], list[Scores], list[np.ndarray]]:
+    """Core elements per tile, each tile's scores (tile 1 without p-values, tile 4 without coverage), and per tile
+    where each of its candidates lands among the merged candidates."""
+    tile_of = rng.integers(0, TILES, N)
+    members = [np.flatnonzero(tile_of == t) for t in range(TILES)]
+    pieces, maps, merged_at = [], [], 0
+    for t, ids in enumerate(members):
+        n = len(ids)
+        candidates = 3 * n
+        match = np.where(rng.uniform(size=n) < 0.8, rng.integers(0, candidates, n), -1).astype(np.int32)
+        pieces.append(Scores(query=0, score=rng.uniform(0, 9, n), measure="test",
+                             p_value=None if t == 1 else rng.uniform(size=n), tolerance=0.01 * t,
+                             match=match, covered=None if t == 4 else rng.uniform(size=n) < 0.5))
+        maps.append(np.sort(rng.choice(10 * N, candidates, replace=False)).astype(np.int32) + merged_at)
+        merged_at += 10 * N
+    return members, pieces, maps
+
+
+def test_scores_put_in_place_are_each_elements_tiles() -> None:
+    members, pieces, maps = _pieces(np.random.default_rng(3))
+    sink = ScoreSink([N])
+    for t in (4, 0, 5, 2, 1, 3):  # tiles finish in any order
+        handed: list[Scores | None] = [pieces[t]]
+        sink.absorb(t, handed, [members[t]])
+        assert handed == [None]
+    merged = sink.merged(0, list(range(TILES)), members, maps)
+    for t, (ids, s) in enumerate(zip(members, pieces, strict=True)):
+        assert np.array_equal(merged.score[ids], s.score)
+        assert np.array_equal(merged.p_value[ids], np.full(len(ids), np.nan) if s.p_value is None else s.p_value,
+                              equal_nan=True)
+        assert np.array_equal(merged.covered[ids], np.ones(len(ids), bool) if s.covered is None else s.covered)
+        won = s.match >= 0
+        assert np.array_equal(merged.match[ids][won], maps[t][s.match[won]])
+        assert (merged.match[ids][~won] == -1).all()
+    assert merged.tolerance == pytest.approx(0.05) and merged.measure == "test"
+    assert merged.match.dtype == np.int32
+    # held as made, read-only: the scores do not copy them
+    assert not merged.score.flags.writeable and merged.score.base is None
+
+
+def test_without_merged_candidates_the_winners_keep_their_numbers() -> None:
+    members, pieces, _ = _pieces(np.random.default_rng(4))
+    sink = ScoreSink([N])
+    for t in range(TILES):
+        sink.absorb(t, [pieces[t]], [members[t]])
+    merged = sink.merged(0, list(range(TILES)), members, None)
+    for ids, s in zip(members, pieces, strict=True):
+        assert np.array_equal(merged.match[ids], s.match)
+
+
+def test_a_tile_missing_from_the_merge_is_an_error() -> None:
+    members, pieces, maps = _pieces(np.random.default_rng(5))
+    sink = ScoreSink([N])
+    for t in range(TILES - 1):
+        sink.absorb(t, [pieces[t]], [members[t]])
+    with pytest.raises(GdtError, match="scores of tiles"):
+        sink.merged(0, list(range(TILES)), members, maps)

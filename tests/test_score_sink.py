@@ -15,7 +15,8 @@ N, TILES = 1000, 6
 
 
 def _pieces(rng: np.random.Generator) -> tuple[list[np.ndarray], list[Scores], list[np.ndarray]]:
-    """Core elements per tile, each tile's scores (tile 1 without p-values, tile 4 without coverage), and per tile
+    """Core elements per tile, each tile's scores (tile 1 without p-values, tile 4 without coverage, tile 5's winners
+    int64), and per tile
     where each of its candidates lands among the merged candidates."""
     tile_of = rng.integers(0, TILES, N)
     members = [np.flatnonzero(tile_of == t) for t in range(TILES)]
@@ -23,7 +24,8 @@ def _pieces(rng: np.random.Generator) -> tuple[list[np.ndarray], list[Scores], l
     for t, ids in enumerate(members):
         n = len(ids)
         candidates = 3 * n
-        match = np.where(rng.uniform(size=n) < 0.8, rng.integers(0, candidates, n), -1).astype(np.int32)
+        match = np.where(rng.uniform(size=n) < 0.8, rng.integers(0, candidates, n), -1)
+        match = match.astype(np.int64 if t == 5 else np.int32)  # one tile's winners int64: the column widens
         pieces.append(Scores(query=0, score=rng.uniform(0, 9, n), measure="test",
                              p_value=None if t == 1 else rng.uniform(size=n), tolerance=0.01 * t,
                              match=match, covered=None if t == 4 else rng.uniform(size=n) < 0.5))
@@ -62,6 +64,7 @@ def test_without_merged_candidates_the_winners_keep_their_numbers() -> None:
     merged = sink.merged(0, list(range(TILES)), members, None)
     for ids, s in zip(members, pieces, strict=True):
         assert np.array_equal(merged.match[ids], s.match)
+    assert merged.match.dtype == np.int64
 
 
 def test_a_tile_missing_from_the_merge_is_an_error() -> None:

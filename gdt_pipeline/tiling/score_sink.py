@@ -31,6 +31,29 @@ class _Columns:
     match: np.ndarray | None = None
     tolerances: list[float] = field(default_factory=list)
     tiles: list[int] = field(default_factory=list)  # in the order absorbed
+    members: list[np.ndarray] = field(default_factory=list)  # their core elements, in that order
+
+
+def _room(n: int, dtype: type | np.dtype) -> np.ndarray:
+    """An unfilled column: its pages are the process's only once a tile writes them (every element is in one
+    tile's core), so the columns grow with the tiles absorbed instead of being held whole from the first."""
+    return np.empty(n, dtype=dtype)
+
+
+def _put(into: _Columns, name: str, ids: np.ndarray, values: np.ndarray | None, missing: float | bool | int,
+         n: int) -> np.ndarray | None:
+    """Column ``name`` with a tile's ``values`` at ``ids`` (``missing`` where the tile has none); made when a
+    first tile has values, the tiles before it given ``missing``; widened when a tile's values need a wider type."""
+    column: np.ndarray | None = getattr(into, name)
+    if column is None and values is None:
+        return None
+    if column is None or (values is not None and np.result_type(column, values) != column.dtype):
+        wider = _room(n, values.dtype if column is None else np.result_type(column, values))  # type: ignore[union-attr]
+        for earlier in into.members:
+            wider[earlier] = missing if column is None else column[earlier]
+        column = wider
+    column[ids] = missing if values is None else values
+    return column
 
 
 @dataclass
@@ -51,24 +74,15 @@ class ScoreSink:
                 raise GdtError(f"tile {tile}: {len(s.score)} scores of dataset {d} for {len(ids)} core elements")
             into = self.columns.get(d)
             if into is None:
-                into = self.columns[d] = _Columns(np.full(self.sizes[d], np.nan), s.measure, s.query)
+                into = self.columns[d] = _Columns(_room(self.sizes[d], np.float64), s.measure, s.query)
             into.score[ids] = s.score
-            if s.p_value is not None:
-                if into.p_value is None:
-                    into.p_value = np.full(self.sizes[d], np.nan)
-                into.p_value[ids] = s.p_value
-            if s.covered is not None:
-                if into.covered is None:
-                    into.covered = np.ones(self.sizes[d], dtype=bool)
-                into.covered[ids] = s.covered
-            if s.match is not None:
-                if into.match is None or np.result_type(into.match, s.match) != into.match.dtype:
-                    into.match = np.full(self.sizes[d], -1, dtype=s.match.dtype) if into.match is None else \
-                        into.match.astype(np.result_type(into.match, s.match))
-                into.match[ids] = s.match
+            into.p_value = _put(into, "p_value", ids, s.p_value, np.nan, self.sizes[d])
+            into.covered = _put(into, "covered", ids, s.covered, True, self.sizes[d])
+            into.match = _put(into, "match", ids, s.match, -1, self.sizes[d])
             if s.tolerance is not None:
                 into.tolerances.append(s.tolerance)
             into.tiles.append(tile)
+            into.members.append(ids)
             pieces[d] = None
 
     def merged(self, d: int, tiles: Sequence[int], members: Sequence[np.ndarray],

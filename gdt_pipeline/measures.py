@@ -35,7 +35,6 @@ from pydantic import BaseModel
 from .compiled import njit
 from .coverage import ReferenceCoverage
 from .geometry import sample_surface
-from .pair_counts import counted_sources
 from .plugins import FAMILY_SLOTS, StageContext, StageSpec, family_stage
 from .types import Composite, Correspondences, Dataset, Scores, Uncertainty
 from .types.arrays import index_dtype
@@ -137,29 +136,42 @@ def pair_sources(ds: Dataset, corr: Correspondences, reference: Composite) -> li
         raise ValueError(f"recent dataset {ds.name!r} has no uncertainty: add an uncertainty stage before this one")
     # the null simulator keeps these indices for the threshold: int32 where they fit (4 B a candidate less)
     found = np.flatnonzero(corr.found).astype(index_dtype(len(corr.found)), copy=False)
-    # per candidate when the correspondences carry query positions, else per element
-    per_candidate = corr.query_position is not None
-    qpos = corr.query_position if corr.query_position is not None else ds.element_positions()
-    u_q, u_q_rows = (ds.uncertainty, False) if corr.query_uncertainty is None else (corr.query_uncertainty, True)
     sources = []
     rows = corr.ref_row
     if corr.ref_uncertainty is not None and rows is not None:  # per-candidate reference models (mixtures)
         over = found[rows[found] >= 0]
         if over.size:
-            sources.append(PairSource(over, corr.element, qpos, u_q, corr.position, corr.ref_uncertainty,
-                                      rows, corr.ref_item, corr.ref_element, per_candidate, u_q_rows))
+            sources.append(group_source(ds, corr, reference, MIXTURES, over))
         found = found[rows[found] < 0]
     for item in np.unique(corr.ref_item[found]):
-        sel = found[corr.ref_item[found] == item]
-        ref = reference.items[item].dataset
-        if ref.uncertainty is None:
-            raise ValueError(f"reference dataset {ref.name!r} has no uncertainty")
-        # every pair of this source names this item: a stride-0 column rather than the correspondences' (the
-        # simulator holds its columns from the distance stage to the threshold: 4 B a candidate, 0.2 GB at 50 M)
-        item_column = np.broadcast_to(corr.ref_item.dtype.type(item), corr.ref_item.shape)
-        sources.append(PairSource(sel, corr.element, qpos, u_q, corr.position, ref.uncertainty,
-                                  corr.ref_element, item_column, corr.ref_element, per_candidate, u_q_rows))
+        sources.append(group_source(ds, corr, reference, int(item), found[corr.ref_item[found] == item]))
     return sources
+
+
+MIXTURES = -1  # the group of the candidates carrying a reference model of their own
+
+
+def group_source(ds: Dataset, corr: Correspondences, reference: Composite, group: int, idx: np.ndarray
+                 ) -> PairSource:
+    """The pairs ``idx`` of one group (``MIXTURES``, or a reference item) of a recent dataset as a ``PairSource``."""
+    if ds.uncertainty is None:
+        raise ValueError(f"recent dataset {ds.name!r} has no uncertainty: add an uncertainty stage before this one")
+    # per candidate when the correspondences carry query positions, else per element
+    per_candidate = corr.query_position is not None
+    qpos = corr.query_position if corr.query_position is not None else ds.element_positions()
+    u_q, u_q_rows = (ds.uncertainty, False) if corr.query_uncertainty is None else (corr.query_uncertainty, True)
+    if group == MIXTURES:
+        assert corr.ref_uncertainty is not None and corr.ref_row is not None
+        return PairSource(idx, corr.element, qpos, u_q, corr.position, corr.ref_uncertainty, corr.ref_row,
+                          corr.ref_item, corr.ref_element, per_candidate, u_q_rows)
+    ref = reference.items[group].dataset
+    if ref.uncertainty is None:
+        raise ValueError(f"reference dataset {ref.name!r} has no uncertainty")
+    # every pair of this source names this item: a stride-0 column rather than the correspondences' (the
+    # simulator holds its columns from the distance stage to the threshold: 4 B a candidate, 0.2 GB at 50 M)
+    item_column = np.broadcast_to(corr.ref_item.dtype.type(group), corr.ref_item.shape)
+    return PairSource(idx, corr.element, qpos, u_q, corr.position, ref.uncertainty, corr.ref_element, item_column,
+                      corr.ref_element, per_candidate, u_q_rows)
 
 
 def pair_groups(ds: Dataset, corr: Correspondences, reference: Composite) -> list[PairGroup]:
@@ -341,6 +353,8 @@ def attach_null_simulators(ctx: StageContext, measure: PairMeasure, prepare: Pre
     cover = ReferenceCoverage(ctx["reference"])
     for s in ctx["scores"]:
         ds = ctx["recent"][s.query]
+        from .pair_counts import counted_sources  # it builds on this module's pair sources
+
         # counted, not indexed: the merged candidates' columns may be maps of a scratch file (the same pairs drawn)
         sources: list[Any] = counted_sources(ds, by_query[s.query], ctx["reference"])
         if prepare is not None:  # prepared groups (local normals) are every pair's copies anyway

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .measures import MIXTURES, PairGroup, PairSource, group_source
+from .pairs import MIXTURES, PairGroup, PairSource, group_source
 from .types import Composite, Correspondences, Dataset, Uncertainty
 from .types.arrays import index_dtype, rows_copy
 

@@ -57,3 +57,18 @@ def read_at(file: IO[bytes], dtype: np.dtype, shape: tuple[int, ...], offset: in
             got += len(more)
         raw = b"".join(parts)
     return np.frombuffer(raw, dtype=dtype).reshape(shape)
+
+
+def reserved_map(folder: Path, prefix: str, dtype: type | np.dtype, shape: tuple[int, ...], what: str
+                 ) -> tuple[IO[bytes], np.memmap]:
+    """A scratch file reserved in full for an array of ``dtype`` and ``shape``, and its map for writing: a full disk
+    is an error now, naming the folder, not a SIGBUS in the middle of a tile. The caller closes the file."""
+    size = int(np.dtype(dtype).itemsize * np.prod(shape, dtype=np.int64))
+    file = scratch_file(folder, prefix)
+    try:
+        os.posix_fallocate(file.fileno(), 0, max(size, 1))
+    except OSError as exc:
+        file.close()
+        raise GdtError(f"{folder}: reserving {size / 1e9:.3g} GB of scratch space for {what} failed "
+                       f"({exc.strerror}); set TMPDIR to a disk with room for it") from exc
+    return file, np.memmap(file, dtype=dtype, mode="r+", shape=shape)

@@ -11,6 +11,7 @@ import numpy as np
 from twin_store import ElementSet, RowsOnDemand, SetsOnDemand, TwinStore
 
 from .types import ChangeState, Composite, CompositeItem, Dataset
+from .types.arrays import MappedRows, rows_copy
 
 
 def composite_to_elements(composite: Composite) -> SetsOnDemand:
@@ -34,7 +35,7 @@ def _set_source(it: CompositeItem) -> ElementSet | RowsOnDemand:
 def _element_set(it: CompositeItem, rows: slice) -> ElementSet:
     """The element set of the elements ``rows`` of one composite item (of a point item: a run of its points)."""
     ds = it.dataset
-    points = ds.points if ds.faces is not None else ds.points[rows]
+    points = ds.points if ds.faces is not None else _point_rows(ds.points, rows)
     n = ds.n_elements if ds.faces is not None else len(points)
     unc = ds.uncertainty
     if unc is not None and rows != slice(None):
@@ -58,6 +59,15 @@ def _element_set(it: CompositeItem, rows: slice) -> ElementSet:
 def _item(it: CompositeItem) -> dict[str, str]:
     """What brought the item's set in: its epoch, role and dataset name."""
     return {"epoch": it.epoch, "role": it.dataset.role, "name": it.dataset.name}
+
+
+def _point_rows(points: np.ndarray, rows: slice) -> np.ndarray:
+    """A run of a point set's rows: of points kept in a scratch file, a copy whose pages the process lets go of
+    (a view of the map would hold every page the writer touched, the whole scan by the last part)."""
+    if not isinstance(points, MappedRows):
+        return points[rows]
+    start, stop, step = rows.indices(len(points))
+    return rows_copy(points, start, stop) if step == 1 else np.array(points[rows])
 
 
 def _rows(values: np.ndarray | None, rows: slice) -> np.ndarray | None:

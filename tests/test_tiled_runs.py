@@ -46,8 +46,23 @@ def _stage_report(twin: Path, epoch: str, stage: str) -> dict:
     return next(s["report"] for s in TwinStore.open(twin).provenance(epoch)["stages"] if s["uses"] == stage)
 
 
-def test_tiled_run_equals_the_whole_run(scene: Path, whole: Path, registry: object) -> None:
+def test_tiled_run_equals_the_whole_run(scene: Path, whole: Path, registry: object,
+                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    from gdt_pipeline.runner import tiled as tiled_runner
+    from gdt_pipeline.types import MappedRows
+
+    spilled: list[str] = []
+    spill = tiled_runner.spilled_points
+
+    def counted(ds, folder):  # the scans the tiles read came from scratch files, and still gave the whole twin
+        out = spill(ds, folder)
+        if isinstance(out.points, MappedRows):
+            spilled.append(ds.name)
+        return out
+
+    monkeypatch.setattr(tiled_runner, "spilled_points", counted)
     tiled = _tiled(scene, registry, "tiled")
+    assert spilled, "no scan was moved to a scratch file"
     a, b = _elements(whole), _elements(tiled)
     assert a.keys() == b.keys()
     scored = 0

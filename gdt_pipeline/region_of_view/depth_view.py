@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from ..memory import release_scratch_pages
 from ..types import Composite, Dataset, ItemView, RegionOfView
 from .contact import closed_parts, in_contact
 from .depth import HIDDEN, NONE, PRESENT, THROUGH, DepthImage, Station, build_image, window_votes
@@ -51,6 +52,7 @@ def depth_images(stations: list[Station], recent: list[Dataset], pixel_scale: fl
             pts = np.vstack([p for p, _ in parts]) if parts else np.zeros((0, 3))
             cov = np.concatenate([_per_point(p, c) for p, c in parts]) if parts else np.zeros((0, 3, 3))
         images.append(build_image(st, pts, cov, pixel_scale))
+        release_scratch_pages()  # the scan's pages in scratch files it read: one station's at a time, not all
     return images
 
 
@@ -97,6 +99,7 @@ def sample_states(ds: Dataset, visible: np.ndarray, inside: np.ndarray, pos: np.
                 votes[:, cand] += v
                 looked_at[cand] = True
                 seen_through.append(cand[v[1] > 0])
+                release_scratch_pages()  # the covariances gathered at random touched pages all over their file
         if seen_through:
             through.append((k, np.concatenate(seen_through)))
     at, behind = votes

@@ -253,9 +253,11 @@ def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, 
                      units=plan.units)
     digests = [run.digests[(epoch.index, i)] for i in range(len(epoch.inputs))]
     read = [read_input(plan, run.registry, epoch, i, digests[i]) for i in range(len(epoch.inputs))]
+    inputs = [input_record(parts, poses, inp) for (parts, poses), inp in zip(read, epoch.inputs, strict=True)]
     recent = [ds for parts, _ in read for ds in parts]
     info = dataclasses.replace(info, origin=_frame_origin(recent))
     slots: dict[str, Any] = {"recent": recent, "epoch": info}
+    del read, recent  # the slots alone hold the scans, so that a tiled run can move them to disk (tiling.point_file)
     if composite is not None:
         slots["reference"] = composite
     upstream = [epoch_key] if epoch_key else []
@@ -270,7 +272,7 @@ def _run_epoch(run: _RunContext, epoch: EpochPlan, composite: Composite | None, 
     prov = EpochProvenance(
         gdt_pipeline=run.packages.get("gdt-pipeline", "?"), workflow=run.workflow,
         epoch=EpochRecord(epoch.id, epoch.index, epoch.role), seed=plan.seed,
-        inputs=[input_record(parts, poses, inp) for (parts, poses), inp in zip(read, epoch.inputs, strict=True)],
+        inputs=inputs,
         stages=records, registration=registration_record(slots.get("registration")), packages=run.packages,
         python=platform.python_version(), started=started, finished=datetime.now(UTC).isoformat(timespec="seconds"),
         counts=_kept_retired(slots, composite).counts(), epoch_key=upstream[-1] if upstream else None)

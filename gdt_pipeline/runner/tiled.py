@@ -43,6 +43,7 @@ from ..tiling import (
 )
 from ..tiling.crop import take_change, take_scores
 from ..tiling.merge import RecentSink
+from ..tiling.point_file import spilled_points
 from ..tiling.score_sink import ScoreSink
 from ..types import Composite, CompositeItem, Dataset
 from .halos import StageReach, stage_reaches, tile_reaches
@@ -273,6 +274,9 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
     reads = {s for st in stages for s in (*st.spec.requires, *st.spec.optional)}
     reaches = stage_reaches(stages, slots)
     epoch_id = slots["epoch"].id
+    folder = scratch_folder() if session.options.spill else None
+    if folder is not None:  # from here on the scans are read a gather of rows at a time (tiling.point_file)
+        slots["recent"] = [spilled_points(ds, folder) for ds in slots["recent"]]
     if epoch_id not in session.sizes:  # one size per epoch: its data decide it when a budget is given
         positions = [ds.element_positions() for ds in slots["recent"]]
         session.sizes[epoch_id] = session.options.tile or size_for_budget(
@@ -280,6 +284,7 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
     surveys = {st.index: stage_survey(st.spec, st.params, slots, f"stage {st.index} {st.spec.name!r}")
                for st in stages if st.spec.survey is not None}
     cutter = _Cutter(slots, reads, reaches, session.sizes[epoch_id], surveys)
+    return_freed_memory()  # the cut read every position: their pages go back to the page cache
     executor, fn = session.executor()
     threads = session.worker_threads()
     halos = [cutter.halo(t) for t in cutter.members]
@@ -287,8 +292,8 @@ def run_tiles(session: TileSession, stages: list[StagePlan], slots: dict[str, An
              min(halos, default=0.0), max(halos, default=0.0), ", ".join(st.spec.name for st in stages))
     provides = {s for st in stages for s in st.spec.provides}
     sizes = [ds.n_elements for ds in slots["recent"]]
-    sink = RecentSink(sizes, scratch_folder() if session.options.spill else None)
-    scores = ScoreSink(sizes)
+    sink = RecentSink(sizes, folder)
+    scores = ScoreSink(sizes, folder)
     spill = "correspondences" in provides and session.options.spill
     with CandidateSink() if spill else contextlib.nullcontext() as candidates:
 

@@ -9,7 +9,6 @@ element's winning candidate, mean the same in both.
 from __future__ import annotations
 
 import dataclasses
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +18,7 @@ import numpy as np
 
 from ..errors import GdtError
 from ..memory import release_pages
-from ..scratch import scratch_file
+from ..scratch import reserved_map
 from ..types import (
     Change,
     Correspondences,
@@ -63,10 +62,6 @@ class UncertaintyPiece:
     n_elements: int
 
 
-# Bytes a point's covariance takes (3x3 float64): what a scratch file of the scans' covariances reserves per point.
-COV_BYTES = 72
-
-
 @dataclass
 class RecentSink:
     """Per recent dataset, the tiles' per-element Gaussian covariances written into place as each tile finishes, so
@@ -88,15 +83,8 @@ class RecentSink:
         n = self.sizes[d]
         if self.folder is None or n == 0:
             return np.empty((n, 3, 3))
-        file = scratch_file(self.folder, "gdt-cov-")
-        try:
-            os.posix_fallocate(file.fileno(), 0, n * COV_BYTES)
-        except OSError as exc:
-            file.close()
-            raise GdtError(f"{self.folder}: reserving {n * COV_BYTES / 1e9:.3g} GB of scratch space for the scans' "
-                           f"covariances failed ({exc.strerror}); set TMPDIR to a disk with room for them") from exc
-        self.files[d] = file
-        return np.memmap(file, dtype=np.float64, mode="r+", shape=(n, 3, 3))
+        self.files[d], rows = reserved_map(self.folder, "gdt-cov-", np.float64, (n, 3, 3), "the scans' covariances")
+        return rows
 
     def absorb(self, pieces: list[UncertaintyPiece | None], members: Sequence[np.ndarray]) -> None:
         """Write each piece that is a per-element Gaussian with the dataset's dof into place (``members[d]``: its

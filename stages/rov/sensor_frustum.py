@@ -10,6 +10,7 @@ import numpy as np
 from pydantic import Field, PositiveFloat
 
 from gdt_pipeline import Dataset, RegionOfView, StageContext
+from gdt_pipeline.memory import release_scratch_pages
 from gdt_pipeline.region_of_view import SightParams, Station, Volume, rov_stage, view_frame
 
 
@@ -90,6 +91,7 @@ def frustum_volume(ctx: StageContext) -> Volume:
     frusta, owner = [], []
     for i, ds in enumerate(ctx["recent"]):
         found = _dataset_frusta(ds, ctx.params)
+        release_scratch_pages()  # a fit reads every point: of a scan in a scratch file, its pages go after it
         frusta += found
         owner += [i] * len(found)
     if not frusta:

@@ -191,21 +191,43 @@ def main() -> None:
         folder = scene["workflow"].parent
         print(f"\n== {scene['points']:,} points ({scene['source']}; scene built in {time.perf_counter() - t0:.0f} s),"
               f" tiles of at most {args.tile_elements:,} elements, {args.workers} workers ==", flush=True)
-        for way in args.ways.split(","):
-            need = per_point.get(way, 0.0) * scene["points"]
-            free = psutil.virtual_memory().available
-            if need > MEMORY_SHARE * free:  # an out-of-memory kill on a shared machine takes others down too
-                print(f"  {way:<10} skipped: {per_point[way]:.0f} B/point measured at the last size would need "
-                      f"{need / 2**30:.1f} GB, {free / 2**30:.1f} GB are free", flush=True)
-                continue
-            runs = [run_way(folder, way, args) for _ in range(args.repeats)]
-            ok = [r for r in runs if r["code"] == 0]
+        ways = [w for w in args.ways.split(",") if fits(w, per_point, scene["points"])]
+        runs: dict[str, list[dict]] = {w: [] for w in ways}
+        for _ in range(args.repeats):  # interleaved, so that a noisy spell on the shared machine hits every way
+            for way in ways:
+                runs[way].append(run_way(folder, way, args))
+        for way in ways:
+            ok = [r for r in runs[way] if r["code"] == 0]
             if ok:
                 per_point[way] = float(np.median([r["rss_mb"] for r in ok])) * 2**20 / scene["points"]
-            print_way(scene["points"], way, runs)
-            if way != "whole" and runs[0]["code"] == 0 and (folder / "twin-whole").exists():
+            print_way(scene["points"], way, runs[way])
+            if way != "whole" and runs[way][0]["code"] == 0 and (folder / "twin-whole").exists():
                 print(f"  {'':<10} {compare(folder, way)}", flush=True)
+                if "whole" in runs:
+                    print(f"  {'':<10} {wall_ratio(runs[way], runs['whole'])}", flush=True)
 
+
+def fits(way: str, per_point: dict[str, float], points: int) -> bool:
+    """Whether a way's bytes a point at the last size leave room at this one (an out-of-memory kill on a shared
+    machine takes others down too); printed when not."""
+    need = per_point.get(way, 0.0) * points
+    free = psutil.virtual_memory().available
+    if need <= MEMORY_SHARE * free:
+        return True
+    print(f"  {way:<10} skipped: {per_point[way]:.0f} B/point measured at the last size would need "
+          f"{need / 2**30:.1f} GB, {free / 2**30:.1f} GB are free", flush=True)
+    return False
+
+
+def wall_ratio(runs: list[dict], whole: list[dict]) -> str:
+    """A way's wall time against the whole run's, measured in the same bench run: the ratio of the medians, and
+    repeat by repeat (each pair ran one after the other)."""
+    ok = [(r["wall"], w["wall"]) for r, w in zip(runs, whole, strict=False) if r["code"] == 0 and w["code"] == 0]
+    if not ok:
+        return "vs whole wall: no pair of runs to compare"
+    ratio = np.median([r for r, _ in ok]) / np.median([w for _, w in ok])
+    each = ", ".join(f"{r / w:.3f}" for r, w in ok)
+    return f"vs whole wall: {ratio:.3f} ratio of medians (per repeat {each})"
 
 if __name__ == "__main__":
     main()

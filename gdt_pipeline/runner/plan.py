@@ -56,8 +56,9 @@ class TilingOptions:
     tile: float | None = None
     max_elements: int | None = None
     address: str | None = None
-    # the tiles' candidates' wide columns (``tiling.CandidateSink``) and the scans' merged covariances
-    # (``tiling.RecentSink``) kept in scratch files (TMPDIR), not in memory
+    # the tiles' candidates (``tiling.CandidateSink``), the scans' points (``tiling.point_file``), their merged
+    # covariances (``tiling.RecentSink``) and the tiles' scores (``tiling.score_sink``) kept in scratch files (TMPDIR),
+    # not in memory
     spill: bool = True
     # (epoch id, tile edge) pairs fixed beforehand (an audit replays the sizes a run recorded)
     epoch_sizes: tuple[tuple[str, float], ...] = ()

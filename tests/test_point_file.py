@@ -64,14 +64,15 @@ def test_a_full_disk_names_the_folder_and_the_room_needed(tmp_path: Path, monkey
 @pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="needs /proc/self/smaps (Linux)")
 def test_the_twins_writer_reads_spilled_points_in_parts_and_holds_none(tmp_path: Path) -> None:
     from gdt_pipeline.memory import return_freed_memory
-    from gdt_pipeline.twin_elements import _element_set
-    from gdt_pipeline.types import CompositeItem
+    from gdt_pipeline.twin_elements import composite_to_elements
+    from gdt_pipeline.types import Composite, CompositeItem
 
     ds = spilled_points(_scan(600_000, 1), tmp_path)  # 14 MB of points
     return_freed_memory()
     n = ds.n_elements
     item = CompositeItem(key="scan", dataset=ds, epoch="E0", state=np.zeros(n, np.uint8), score=np.zeros(n),
                          source_epoch=np.zeros(n, np.int32), visible=np.ones(n, bool))
-    parts = [_element_set(item, slice(a, a + 100_000)) for a in range(0, n, 100_000)]
+    source = composite_to_elements(Composite(items=(item,)))[0]  # what the writer is handed: rows on demand
+    parts = [source.rows(a, a + 100_000) for a in range(0, n, 100_000)]
     assert np.array_equal(np.concatenate([p.points for p in parts]), np.asarray(_scan(600_000, 1).points))
     assert _resident_kb(ds) < 1_000  # the parts hold copies; the map's pages went back to the page cache

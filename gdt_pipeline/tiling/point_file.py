@@ -31,8 +31,8 @@ def spilled_points(ds: Dataset, folder: Path) -> Dataset:
     file = scratch_file(folder, "gdt-points-")
     try:
         for start in range(0, n, WRITE_PIECE):
-            piece = np.ascontiguousarray(ds.points[start:start + WRITE_PIECE], dtype=np.float64)
-            write_at(file, piece, start * POINT_BYTES, folder, f"dataset {ds.name!r} points", room)
+            write_at(file, ds.points[start:start + WRITE_PIECE], start * POINT_BYTES, folder,
+                     f"dataset {ds.name!r} points", room)
         # the map keeps the file open; the descriptor goes when this block ends
         rows = MappedRows(file, dtype=np.float64, mode="r", shape=(n, 3))
     finally:

@@ -149,6 +149,7 @@ class ScoreSink:
         for ids, places in zip(members, candidate_maps, strict=True):
             local = match[ids]  # a copy: rewriting it in place is safe
             won = local >= 0
-            out[ids] = np.where(won, places[np.where(won, local, 0)] if len(places) else -1, -1)
+            out[ids[~won]] = -1
+            out[ids[won]] = places[local[won]]
             self.room.let_go([out, match])
         return out
